@@ -1,0 +1,1 @@
+//! Mesh and point-cloud file formats.
