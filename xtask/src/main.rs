@@ -1,1 +1,143 @@
-fn main() {}
+//! `cargo xtask` — the project's only workflow tool (see `.cargo/config.toml`).
+//!
+//! - `cargo xtask test` runs the whole test suite (the README's test command; CI runs it).
+//! - `cargo xtask bench [NAME…]` runs the criterion benchmarks under `benches/` (all by
+//!   default), then prints each benchmark's median next to its ratio to the baseline measured in
+//!   the same run, and writes the same table to `target/bench-summary.json`.
+//!
+//! Later issues add `train-pose`, `train-seg`, `gen-data` and `export-cases` here.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "cargo xtask", about = "incontext developer workflows")]
+struct Cli {
+    #[command(subcommand)]
+    command: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Run the whole test suite: every target of every crate (benches once, in test mode), then
+    /// the doc tests. This is the README's test command and what CI runs.
+    Test,
+    /// Run criterion benchmarks and summarise medians as ratios to the in-run baseline.
+    Bench {
+        /// Benchmarks to run (file stems under benches/); all when empty.
+        names: Vec<String>,
+    },
+}
+
+/// Which crate owns each benchmark file under `benches/`.
+const BENCHES: &[(&str, &str)] = &[("geometry", "ic_geometry"), ("render", "ic_render")];
+
+fn main() -> std::process::ExitCode {
+    let result = match Cli::parse().command {
+        Cmd::Bench { names } => bench(&names),
+        Cmd::Test => test(),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("xtask lives in the workspace root").to_path_buf()
+}
+
+fn cargo(args: &[&str]) -> Result<()> {
+    eprintln!("== cargo {}", args.join(" "));
+    let status = Command::new(env!("CARGO")).current_dir(workspace_root()).args(args).status().context("running cargo")?;
+    if !status.success() {
+        bail!("cargo {} failed ({status})", args.join(" "));
+    }
+    Ok(())
+}
+
+fn test() -> Result<()> {
+    cargo(&["test", "--workspace", "--all-targets"])?;
+    cargo(&["test", "--workspace", "--doc"])
+}
+
+fn bench(names: &[String]) -> Result<()> {
+    let root = workspace_root();
+    let selected: Vec<(&str, &str)> = if names.is_empty() {
+        BENCHES.iter().copied().filter(|(name, _)| root.join("benches").join(format!("{name}.rs")).exists()).collect()
+    } else {
+        names
+            .iter()
+            .map(|n| {
+                BENCHES.iter().copied().find(|(b, _)| b == n).with_context(|| {
+                    format!("unknown benchmark {n:?}; known: {}", BENCHES.iter().map(|b| b.0).collect::<Vec<_>>().join(", "))
+                })
+            })
+            .collect::<Result<_>>()?
+    };
+    for (name, package) in &selected {
+        cargo(&["bench", "-p", package, "--bench", name])?;
+    }
+    summarise(&root.join("target/criterion"), &root.join("target/bench-summary.json"))
+}
+
+/// Reads every `target/criterion/<group>/<bench>/new/estimates.json` and prints medians, with
+/// the ratio to the `baseline/*` benchmark of the same run.
+fn summarise(criterion_dir: &Path, out: &Path) -> Result<()> {
+    let mut rows = Vec::new();
+    for estimates in find_estimates(criterion_dir)? {
+        let text = std::fs::read_to_string(&estimates).with_context(|| format!("reading {}", estimates.display()))?;
+        let json: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("parsing {}", estimates.display()))?;
+        let median_ns = json["median"]["point_estimate"].as_f64().with_context(|| format!("{}: no median", estimates.display()))?;
+        let id = estimates.parent().and_then(Path::parent).and_then(|p| p.strip_prefix(criterion_dir).ok()).unwrap_or(Path::new("?"));
+        rows.push((id.display().to_string(), median_ns));
+    }
+    rows.sort_by(|a, b| a.0.cmp(&b.0));
+    let baseline = rows.iter().find(|r| r.0.starts_with("baseline")).map(|r| r.1);
+    println!("{:<48} {:>14} {:>12}", "benchmark", "median", "× baseline");
+    let mut json_rows = Vec::new();
+    for (id, ns) in &rows {
+        let ratio = baseline.map(|b| ns / b);
+        println!("{:<48} {:>14} {:>12}", id, human(*ns), ratio.map_or("-".into(), |r| format!("{r:.1}")));
+        json_rows.push(serde_json::json!({"benchmark": id, "median_ns": ns, "ratio_to_baseline": ratio}));
+    }
+    let tmp = out.with_extension("json.tmp");
+    std::fs::write(&tmp, serde_json::to_string_pretty(&json_rows)?)?;
+    std::fs::rename(&tmp, out)?;
+    eprintln!("summary written to {}", out.display());
+    Ok(())
+}
+
+fn find_estimates(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut found = Vec::new();
+    if !dir.exists() {
+        return Ok(found);
+    }
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for entry in std::fs::read_dir(&d).with_context(|| format!("listing {}", d.display()))? {
+            let path = entry?.path();
+            if path.is_dir() {
+                stack.push(path);
+            } else if path.file_name().is_some_and(|n| n == "estimates.json") && path.parent().is_some_and(|p| p.ends_with("new")) {
+                found.push(path);
+            }
+        }
+    }
+    Ok(found)
+}
+
+fn human(ns: f64) -> String {
+    match ns {
+        n if n >= 1e9 => format!("{:.3} s", n / 1e9),
+        n if n >= 1e6 => format!("{:.3} ms", n / 1e6),
+        n if n >= 1e3 => format!("{:.3} µs", n / 1e3),
+        n => format!("{n:.0} ns"),
+    }
+}

@@ -78,3 +78,206 @@ pub(crate) fn check_finite(what: &'static str, points: &[Vec3]) -> Result<(), Ge
         None => Ok(()),
     }
 }
+
+/// The integer voxel of a point on the grid of cell size `voxel_size` anchored at the origin:
+/// voxel `(i, j, k)` covers `[i·s, (i+1)·s) × [j·s, (j+1)·s) × [k·s, (k+1)·s)`.
+pub fn voxel_of(p: Vec3, voxel_size: f32) -> [i64; 3] {
+    [(p.x / voxel_size).floor() as i64, (p.y / voxel_size).floor() as i64, (p.z / voxel_size).floor() as i64]
+}
+
+/// Voxel down-sampling: one point per occupied voxel, the centroid of the input points in it
+/// (clamped to their bounding box so rounding can never move it into a neighbouring voxel).
+///
+/// Deterministic: the output is ordered by voxel index (x, then y, then z), independent of the
+/// input order. Normals are averaged and re-normalised, colours averaged. Errors on a
+/// non-positive or non-finite voxel size, or non-finite points.
+pub fn voxel_downsample(cloud: &PointCloud, voxel_size: f32) -> Result<PointCloud, GeometryError> {
+    if !(voxel_size > 0.0 && voxel_size.is_finite()) {
+        return Err(GeometryError::InvalidParameter { name: "voxel_size", message: format!("{voxel_size} is not a positive finite size") });
+    }
+    cloud.validate()?;
+    let mut order: Vec<([i64; 3], u32)> =
+        cloud.points.iter().enumerate().map(|(i, &p)| (voxel_of(p, voxel_size), i as u32)).collect();
+    order.sort_unstable();
+    let mut out = PointCloud {
+        points: Vec::new(),
+        normals: cloud.normals.as_ref().map(|_| Vec::new()),
+        colors: cloud.colors.as_ref().map(|_| Vec::new()),
+    };
+    for group in order.chunk_by(|a, b| a.0 == b.0) {
+        let (mut sum, mut lo, mut hi) = (glam::DVec3::ZERO, Vec3::INFINITY, Vec3::NEG_INFINITY);
+        for &(_, i) in group {
+            let p = cloud.points[i as usize];
+            sum += p.as_dvec3();
+            lo = lo.min(p);
+            hi = hi.max(p);
+        }
+        out.points.push((sum / group.len() as f64).as_vec3().clamp(lo, hi));
+        if let (Some(src), Some(dst)) = (&cloud.normals, out.normals.as_mut()) {
+            let n: Vec3 = group.iter().map(|&(_, i)| src[i as usize]).sum();
+            dst.push(n.normalize_or_zero());
+        }
+        if let (Some(src), Some(dst)) = (&cloud.colors, out.colors.as_mut()) {
+            let mut acc = [0u32; 3];
+            for &(_, i) in group {
+                for c in 0..3 {
+                    acc[c] += src[i as usize][c] as u32;
+                }
+            }
+            let k = group.len() as u32;
+            dst.push(acc.map(|a| ((a + k / 2) / k) as u8));
+        }
+    }
+    Ok(out)
+}
+
+/// Voxel down-sampling of bare points (see [`voxel_downsample`]).
+pub fn voxel_downsample_points(points: &[Vec3], voxel_size: f32) -> Result<Vec<Vec3>, GeometryError> {
+    // Building a PointCloud moves nothing but the Vec; callers with a cloud use the other form.
+    Ok(voxel_downsample(&PointCloud::from_points(points.to_vec()), voxel_size)?.points)
+}
+
+/// Indices of exactly `count` points drawn at random, as the paper samples M model and N
+/// observed points.
+///
+/// - `len ≥ count`: `count` distinct indices, uniformly without replacement (partial
+///   Fisher–Yates), in random order.
+/// - `0 < len < count`: every index once, then random repeats (with replacement) to fill up,
+///   shuffled — the network still sees exactly `count` points and duplicates carry no new
+///   information.
+/// - `len == 0` and `count > 0`: an error.
+pub fn random_subsample_indices<R: rand::Rng + ?Sized>(len: usize, count: usize, rng: &mut R) -> Result<Vec<usize>, GeometryError> {
+    use rand::seq::SliceRandom;
+    if count == 0 {
+        return Ok(Vec::new());
+    }
+    if len == 0 {
+        return Err(GeometryError::Empty { what: "points to subsample" });
+    }
+    let mut idx: Vec<usize> = (0..len).collect();
+    if len >= count {
+        let (chosen, _) = idx.partial_shuffle(rng, count);
+        return Ok(chosen.to_vec());
+    }
+    idx.extend((len..count).map(|_| rng.random_range(0..len)));
+    idx.shuffle(rng);
+    Ok(idx)
+}
+
+/// Exactly `count` points of `cloud` drawn at random; see [`random_subsample_indices`].
+pub fn random_subsample<R: rand::Rng + ?Sized>(cloud: &PointCloud, count: usize, rng: &mut R) -> Result<PointCloud, GeometryError> {
+    Ok(cloud.select(&random_subsample_indices(cloud.len(), count, rng)?))
+}
+
+/// Unit normals estimated by PCA over each point's `k` nearest neighbours (the eigenvector of
+/// the smallest covariance eigenvalue), oriented towards `viewpoint` (e.g. the camera origin
+/// for back-projected depth). Points with fewer than 3 neighbours get a zero normal.
+pub fn estimate_normals(points: &[Vec3], k: usize, viewpoint: Vec3) -> Result<Vec<Vec3>, GeometryError> {
+    use rayon::prelude::*;
+    let tree = crate::KdTree::new(points)?;
+    Ok(points
+        .par_iter()
+        .map(|&p| {
+            let nb = tree.k_nearest(p, k.max(3));
+            if nb.len() < 3 {
+                return Vec3::ZERO;
+            }
+            let mean = nb.iter().map(|n| points[n.index].as_dvec3()).sum::<glam::DVec3>() / nb.len() as f64;
+            let mut c = [[0.0f64; 3]; 3];
+            for n in &nb {
+                let d = (points[n.index].as_dvec3() - mean).to_array();
+                for r in 0..3 {
+                    for s in 0..3 {
+                        c[r][s] += d[r] * d[s];
+                    }
+                }
+            }
+            let normal = smallest_eigenvector(&c);
+            let flip = if normal.dot((viewpoint - p).as_dvec3()) < 0.0 { -1.0 } else { 1.0 };
+            (normal * flip).as_vec3()
+        })
+        .collect())
+}
+
+/// The unit eigenvector of the smallest eigenvalue of a symmetric 3×3 matrix (faer).
+fn smallest_eigenvector(c: &[[f64; 3]; 3]) -> glam::DVec3 {
+    let m = faer::Mat::<f64>::from_fn(3, 3, |r, s| c[r][s]);
+    match m.self_adjoint_eigen(faer::Side::Lower) {
+        Ok(eig) => {
+            let u = eig.U();
+            glam::DVec3::new(u[(0, 0)], u[(1, 0)], u[(2, 0)]).normalize_or_zero()
+        }
+        Err(_) => glam::DVec3::ZERO,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+    use rand::SeedableRng;
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+
+        #[test]
+        fn voxel_output_has_one_point_per_voxel_and_covers_every_input(
+            pts in prop::collection::vec((-3.0f32..3.0, -3.0f32..3.0, -3.0f32..3.0), 1..400),
+            size in 0.01f32..1.0,
+        ) {
+            let points: Vec<Vec3> = pts.iter().map(|&(x, y, z)| Vec3::new(x, y, z)).collect();
+            let out = voxel_downsample_points(&points, size).unwrap();
+            let out_voxels: Vec<[i64; 3]> = out.iter().map(|&p| voxel_of(p, size)).collect();
+            let unique: std::collections::BTreeSet<_> = out_voxels.iter().copied().collect();
+            prop_assert_eq!(unique.len(), out.len(), "two output points share a voxel");
+            for &p in &points {
+                prop_assert!(unique.contains(&voxel_of(p, size)), "input point {} has no output voxel", p);
+            }
+            prop_assert_eq!(unique.len(), points.iter().map(|&p| voxel_of(p, size)).collect::<std::collections::BTreeSet<_>>().len());
+        }
+    }
+
+    #[test]
+    fn voxel_downsample_is_independent_of_input_order_and_averages_attributes() {
+        let cloud = PointCloud {
+            points: vec![Vec3::new(0.1, 0.1, 0.1), Vec3::new(0.3, 0.3, 0.3), Vec3::new(1.5, 0.0, 0.0)],
+            normals: Some(vec![Vec3::X, Vec3::Y, Vec3::Z]),
+            colors: Some(vec![[0, 0, 0], [255, 100, 2], [9, 9, 9]]),
+        };
+        let a = voxel_downsample(&cloud, 1.0).unwrap();
+        let b = voxel_downsample(&cloud.select(&[2, 1, 0]), 1.0).unwrap();
+        assert_eq!(a, b);
+        assert_eq!(a.points, vec![Vec3::new(0.2, 0.2, 0.2), Vec3::new(1.5, 0.0, 0.0)]);
+        assert!(a.normals.as_ref().unwrap()[0].abs_diff_eq(Vec3::new(1.0, 1.0, 0.0).normalize(), 1e-6));
+        assert_eq!(a.colors.as_ref().unwrap()[0], [128, 50, 1]);
+        assert!(voxel_downsample(&cloud, 0.0).is_err());
+        assert!(voxel_downsample(&cloud, f32::NAN).is_err());
+    }
+
+    #[test]
+    fn subsample_gives_exact_counts_and_documented_shortfall_behaviour() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let idx = random_subsample_indices(100, 40, &mut rng).unwrap();
+        assert_eq!(idx.len(), 40);
+        assert_eq!(idx.iter().collect::<std::collections::HashSet<_>>().len(), 40, "without replacement");
+        let short = random_subsample_indices(5, 12, &mut rng).unwrap();
+        assert_eq!(short.len(), 12);
+        for i in 0..5 {
+            assert!(short.contains(&i), "every point is used before any repeats");
+        }
+        assert!(random_subsample_indices(0, 3, &mut rng).is_err());
+        assert!(random_subsample_indices(0, 0, &mut rng).unwrap().is_empty());
+        let mut a = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        let mut b = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        assert_eq!(random_subsample_indices(1000, 768, &mut a).unwrap(), random_subsample_indices(1000, 768, &mut b).unwrap());
+    }
+
+    #[test]
+    fn normals_of_a_plane_point_to_the_viewpoint() {
+        let points: Vec<Vec3> = (0..400).map(|i| Vec3::new((i % 20) as f32 * 0.1, (i / 20) as f32 * 0.1, 2.0)).collect();
+        let normals = estimate_normals(&points, 10, Vec3::ZERO).unwrap();
+        for n in normals {
+            assert!(n.abs_diff_eq(Vec3::new(0.0, 0.0, -1.0), 1e-5), "{n}");
+        }
+    }
+}

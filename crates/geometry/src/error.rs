@@ -44,6 +44,13 @@ pub enum MeshError {
         "{path}: unsupported mesh format {extension:?} (expected .obj, .off, .ply, .gltf or .glb)"
     )]
     UnsupportedFormat { path: PathBuf, extension: String },
+    /// A point cloud to be written is invalid (attribute lengths, non-finite values).
+    #[error("{path}: invalid point cloud: {source}")]
+    Cloud {
+        path: PathBuf,
+        #[source]
+        source: GeometryError,
+    },
 }
 
 impl MeshError {
@@ -54,7 +61,8 @@ impl MeshError {
             | MeshError::Parse { path, .. }
             | MeshError::Format { path, .. }
             | MeshError::Data { path, .. }
-            | MeshError::UnsupportedFormat { path, .. } => path,
+            | MeshError::UnsupportedFormat { path, .. }
+            | MeshError::Cloud { path, .. } => path,
         }
     }
 }

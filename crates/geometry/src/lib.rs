@@ -41,7 +41,7 @@ pub mod shapes;
 /// Surface sampling: area-weighted uniform and visible-surface.
 pub mod sampling;
 
-pub use cloud::PointCloud;
+pub use cloud::{PointCloud, estimate_normals, random_subsample, random_subsample_indices, voxel_downsample, voxel_downsample_points, voxel_of};
 pub use icp::*;
 pub use knn::*;
 pub use procrustes::*;

@@ -1,0 +1,244 @@
+//! glTF 2.0 (`.gltf` with embedded or external buffers, and binary `.glb`).
+//!
+//! The document and buffers are loaded with the `gltf` crate; accessors are decoded here with
+//! checked arithmetic, so that a malformed file gives an error rather than a panic.
+
+use std::path::Path;
+
+use ::gltf::accessor::{DataType, Dimensions};
+use ::gltf::mesh::{Mode, Semantic};
+use glam::{DMat4, Vec3};
+
+use super::{data_error, format_error};
+use crate::{Mesh, MeshError};
+
+/// Reads a glTF or GLB mesh from `bytes`; `path` is only used in error messages and
+/// `base_dir` resolves external buffer files (`None`: only embedded `data:` URIs and the GLB
+/// binary chunk are allowed). Images are not loaded.
+///
+/// Every primitive of every mesh reachable from the default scene (or the first scene; or, with
+/// no scenes at all, every mesh untransformed) is merged, with its node's world transform
+/// (product of the node matrices / TRS from the root) applied. Only `TRIANGLES` primitives are
+/// accepted; both indexed and non-indexed ones. Positions must be `VEC3` of `FLOAT`. Units are
+/// the file's (glTF specifies metres, but nothing is rescaled). Under a mirroring transform
+/// (negative determinant) triangle order is swapped so faces stay counter-clockwise.
+///
+/// # Errors
+/// [`MeshError::Format`] naming the mesh/primitive for invalid JSON/GLB containers, missing or
+/// out-of-bounds buffers, unsupported modes, accessor types and sparse accessors, index counts
+/// not a multiple of three, out-of-range indices, non-finite transformed vertices and node
+/// graphs that are not trees; [`MeshError::Data`] when there are no triangles.
+pub fn read_gltf(bytes: &[u8], base_dir: Option<&Path>, path: &Path) -> Result<Mesh, MeshError> {
+    let fail = |m: String| format_error(path, m);
+    let gltf = ::gltf::Gltf::from_slice_without_validation(bytes).map_err(|e| fail(format!("invalid glTF: {e}")))?;
+    let ::gltf::Gltf { document, blob } = gltf;
+    validate(document.as_json()).map_err(fail)?;
+    let buffers = ::gltf::import_buffers(&document, base_dir, blob)
+        .map_err(|e| fail(format!("cannot load buffers: {e}")))?;
+    let buffers: Vec<&[u8]> = buffers.iter().map(|b| &b.0[..]).collect();
+
+    let mut out = Mesh::default();
+    let scene = document.default_scene().or_else(|| document.scenes().next());
+    match scene {
+        Some(scene) => {
+            let node_count = document.nodes().count();
+            let mut visited = vec![false; node_count];
+            // Depth-first in document order: the stack holds siblings reversed.
+            let mut stack: Vec<(::gltf::Node, DMat4)> = scene.nodes().map(|n| (n, DMat4::IDENTITY)).collect();
+            stack.reverse();
+            while let Some((node, parent)) = stack.pop() {
+                let seen = visited
+                    .get_mut(node.index())
+                    .ok_or_else(|| fail(format!("node {} does not exist", node.index())))?;
+                if *seen {
+                    return Err(fail(format!(
+                        "node {} is reached twice: the node hierarchy is not a tree",
+                        node.index()
+                    )));
+                }
+                *seen = true;
+                let local = DMat4::from_cols_array_2d(&node.transform().matrix().map(|c| c.map(f64::from)));
+                let world = parent * local;
+                if let Some(mesh) = node.mesh() {
+                    append_mesh(&mut out, &mesh, &world, &buffers, path)?;
+                }
+                let first_child = stack.len();
+                stack.extend(node.children().map(|c| (c, world)));
+                stack[first_child..].reverse();
+            }
+        }
+        None => {
+            for mesh in document.meshes() {
+                append_mesh(&mut out, &mesh, &DMat4::IDENTITY, &buffers, path)?;
+            }
+        }
+    }
+    out.validate().map_err(|e| data_error(path, e))?;
+    Ok(out)
+}
+
+/// Runs the `gltf` crate's validation, after first checking the one reference its validation
+/// dereferences unchecked (gltf-json 1.4 indexes `accessors[POSITION]` directly and panics when
+/// it is out of range).
+fn validate(root: &::gltf::json::Root) -> Result<(), String> {
+    use ::gltf::json::mesh::Semantic as JsonSemantic;
+    use ::gltf::json::validation::{Checked, Validate};
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, primitive) in mesh.primitives.iter().enumerate() {
+            if let Some(index) = primitive.attributes.get(&Checked::Valid(JsonSemantic::Positions)) {
+                if index.value() >= root.accessors.len() {
+                    return Err(format!(
+                        "mesh {m} primitive {p}: POSITION refers to accessor {}, but there are {}",
+                        index.value(),
+                        root.accessors.len()
+                    ));
+                }
+            }
+        }
+    }
+    let mut errors = Vec::new();
+    root.validate(root, ::gltf::json::Path::new, &mut |path, error| {
+        if errors.len() < 5 {
+            errors.push(format!("{}: {error}", path()));
+        }
+    });
+    if errors.is_empty() {
+        Ok(())
+    } else {
+        Err(format!("invalid glTF: {}", errors.join("; ")))
+    }
+}
+
+/// The bytes of an accessor's elements: (data from the first element to the end of its view,
+/// stride, count). Every element `i < count` lies within `data[i*stride .. i*stride+size]`.
+fn accessor_data<'a>(
+    accessor: &::gltf::Accessor,
+    element_size: usize,
+    buffers: &[&'a [u8]],
+) -> Result<(&'a [u8], usize, usize), String> {
+    if accessor.sparse().is_some() {
+        return Err("sparse accessors are not supported".into());
+    }
+    let view = accessor.view().ok_or("the accessor has no buffer view")?;
+    let buffer = buffers
+        .get(view.buffer().index())
+        .ok_or_else(|| format!("buffer {} is missing", view.buffer().index()))?;
+    let stride = view.stride().unwrap_or(element_size);
+    if stride < element_size {
+        return Err(format!("byte stride {stride} is smaller than the element size {element_size}"));
+    }
+    let view_end = view
+        .offset()
+        .checked_add(view.length())
+        .filter(|&end| end <= buffer.len())
+        .ok_or_else(|| format!("buffer view {} lies outside its buffer", view.index()))?;
+    let start = view.offset().checked_add(accessor.offset()).ok_or("accessor offset overflows")?;
+    let count = accessor.count();
+    if count > 0 {
+        let end = (count - 1)
+            .checked_mul(stride)
+            .and_then(|n| n.checked_add(start))
+            .and_then(|n| n.checked_add(element_size))
+            .ok_or("accessor size overflows")?;
+        if end > view_end {
+            return Err(format!(
+                "accessor {} ({count} elements) extends past the end of buffer view {}",
+                accessor.index(),
+                view.index()
+            ));
+        }
+    }
+    let data = if count > 0 { &buffer[start..view_end] } else { &[][..] };
+    Ok((data, stride, count))
+}
+
+fn read_positions(accessor: &::gltf::Accessor, buffers: &[&[u8]]) -> Result<Vec<Vec3>, String> {
+    if accessor.data_type() != DataType::F32 || accessor.dimensions() != Dimensions::Vec3 {
+        return Err(format!(
+            "POSITION must be VEC3 of FLOAT, found {:?} of {:?}",
+            accessor.dimensions(),
+            accessor.data_type()
+        ));
+    }
+    let (data, stride, count) = accessor_data(accessor, 12, buffers)?;
+    Ok((0..count)
+        .map(|i| {
+            let at = i * stride;
+            let f = |k: usize| {
+                let b = &data[at + 4 * k..at + 4 * k + 4];
+                f32::from_le_bytes([b[0], b[1], b[2], b[3]])
+            };
+            Vec3::new(f(0), f(1), f(2))
+        })
+        .collect())
+}
+
+fn read_indices(accessor: &::gltf::Accessor, buffers: &[&[u8]]) -> Result<Vec<u32>, String> {
+    if accessor.dimensions() != Dimensions::Scalar {
+        return Err(format!("indices must be SCALAR, found {:?}", accessor.dimensions()));
+    }
+    let size = match accessor.data_type() {
+        DataType::U8 => 1,
+        DataType::U16 => 2,
+        DataType::U32 => 4,
+        other => return Err(format!("indices must be unsigned integers, found {other:?}")),
+    };
+    let (data, stride, count) = accessor_data(accessor, size, buffers)?;
+    Ok((0..count)
+        .map(|i| {
+            let b = &data[i * stride..i * stride + size];
+            match size {
+                1 => u32::from(b[0]),
+                2 => u32::from(u16::from_le_bytes([b[0], b[1]])),
+                _ => u32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+            }
+        })
+        .collect())
+}
+
+fn append_mesh(
+    out: &mut Mesh,
+    mesh: &::gltf::Mesh,
+    world: &DMat4,
+    buffers: &[&[u8]],
+    path: &Path,
+) -> Result<(), MeshError> {
+    for primitive in mesh.primitives() {
+        let name = format!("mesh {} primitive {}", mesh.index(), primitive.index());
+        let fail = |m: String| format_error(path, format!("{name}: {m}"));
+        if primitive.mode() != Mode::Triangles {
+            return Err(fail(format!("mode {:?} is not supported (only triangles)", primitive.mode())));
+        }
+        let positions = primitive.get(&Semantic::Positions).ok_or_else(|| fail("no POSITION attribute".into()))?;
+        let positions = read_positions(&positions, buffers).map_err(fail)?;
+        let count = positions.len();
+        let indices = match primitive.indices() {
+            Some(accessor) => read_indices(&accessor, buffers).map_err(fail)?,
+            None => (0..count as u32).collect(),
+        };
+        if indices.len() % 3 != 0 {
+            return Err(fail(format!("{} indices is not a multiple of 3", indices.len())));
+        }
+        let offset = out.vertices.len();
+        if offset + count > u32::MAX as usize {
+            return Err(fail("more than 2^32 vertices in total".into()));
+        }
+        for (i, p) in positions.iter().enumerate() {
+            let q = world.transform_point3(p.as_dvec3()).as_vec3();
+            if !q.is_finite() {
+                return Err(fail(format!("vertex {i} is not finite after the node transform ({q})")));
+            }
+            out.vertices.push(q);
+        }
+        // A mirroring transform turns counter-clockwise triangles clockwise: swap to keep them CCW.
+        let mirrored = world.determinant() < 0.0;
+        for (t, tri) in indices.chunks_exact(3).enumerate() {
+            if let Some(&bad) = tri.iter().find(|&&i| i as usize >= count) {
+                return Err(fail(format!("triangle {t} refers to vertex {bad}, but there are {count}")));
+            }
+            let tri = if mirrored { [tri[0], tri[2], tri[1]] } else { [tri[0], tri[1], tri[2]] };
+            out.triangles.push(tri.map(|i| i + offset as u32));
+        }
+    }
+    Ok(())
+}

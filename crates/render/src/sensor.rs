@@ -1,0 +1,234 @@
+//! Seeded depth-sensor artefacts applied to a clean [`Rendering`]. Every effect is off by
+//! default.
+//!
+//! Order: flying pixels (on the clean depth edges), grazing-angle dropout, axial noise,
+//! quantisation. A dropped pixel gets depth 0 (no return) but keeps its instance id, which
+//! stays the ground-truth segmentation of what is in front of the sensor.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+
+use crate::Rendering;
+
+/// Gaussian axial noise with standard deviation `σ(z) = a + b·(z − z0)²` (metres). Defaults:
+/// Nguyen, Izadi, Lovell 2012 (Kinect v1): a = 0.0012, b = 0.0019, z0 = 0.4.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AxialNoise {
+    pub a: f64,
+    pub b: f64,
+    pub z0: f64,
+}
+
+impl Default for AxialNoise {
+    fn default() -> Self {
+        AxialNoise { a: 0.0012, b: 0.0019, z0: 0.4 }
+    }
+}
+
+impl AxialNoise {
+    /// σ at depth `z`.
+    pub fn sigma(&self, z: f64) -> f64 {
+        self.a + self.b * (z - self.z0).powi(2)
+    }
+}
+
+/// Depth quantisation.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
+pub enum Quantisation {
+    /// Round z to a multiple of `step` metres (e.g. 0.001: a 16-bit PNG at depth scale 1).
+    Step { step: f64 },
+    /// A structured-light sensor: disparity `d = focal·baseline/z` (pixels) rounded to
+    /// `1/subpixel` pixel, then `z = focal·baseline/d`. Kinect v1: focal 580, baseline 0.075,
+    /// subpixel 8.
+    Disparity { focal: f64, baseline: f64, subpixel: f64 },
+}
+
+/// Missing returns where the surface is seen at a grazing angle.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GrazingDropout {
+    /// Pixels whose angle between surface normal and viewing ray exceeds this are dropped.
+    pub max_angle_deg: f64,
+}
+
+impl Default for GrazingDropout {
+    fn default() -> Self {
+        GrazingDropout { max_angle_deg: 80.0 }
+    }
+}
+
+/// Mixed ("flying") pixels at depth discontinuities: with `probability`, a pixel whose depth
+/// differs from a 4-neighbour with a return by more than `edge_threshold` metres gets a depth
+/// interpolated between its own and that neighbour's (the one with the largest jump), at a
+/// uniformly random fraction.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FlyingPixels {
+    pub edge_threshold: f64,
+    pub probability: f64,
+}
+
+impl Default for FlyingPixels {
+    fn default() -> Self {
+        FlyingPixels { edge_threshold: 0.05, probability: 0.5 }
+    }
+}
+
+/// Which artefacts to simulate (all `None` = a perfect sensor).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SensorConfig {
+    pub noise: Option<AxialNoise>,
+    pub quantisation: Option<Quantisation>,
+    pub grazing: Option<GrazingDropout>,
+    pub flying_pixels: Option<FlyingPixels>,
+}
+
+impl SensorConfig {
+    /// Whether any effect is on.
+    pub fn is_ideal(&self) -> bool {
+        self.noise.is_none() && self.quantisation.is_none() && self.grazing.is_none() && self.flying_pixels.is_none()
+    }
+
+    /// Applies the configured effects in place; deterministic for a given `seed`.
+    pub fn apply(&self, r: &mut Rendering, seed: u64) {
+        if self.is_ideal() {
+            return;
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let (w, h) = (r.depth.width as usize, r.depth.height as usize);
+        if let Some(f) = self.flying_pixels {
+            let clean = r.depth.data.clone();
+            for v in 0..h {
+                for u in 0..w {
+                    let i = v * w + u;
+                    let z = clean[i];
+                    if z <= 0.0 {
+                        continue;
+                    }
+                    // The neighbour with the largest jump.
+                    let mut best: Option<f32> = None;
+                    let mut jump = f.edge_threshold as f32;
+                    let neighbours = [(u > 0).then(|| i - 1), (u + 1 < w).then(|| i + 1), (v > 0).then(|| i - w), (v + 1 < h).then(|| i + w)];
+                    for n in neighbours.into_iter().flatten() {
+                        let zn = clean[n];
+                        if zn > 0.0 && (zn - z).abs() > jump {
+                            jump = (zn - z).abs();
+                            best = Some(zn);
+                        }
+                    }
+                    if let Some(zn) = best
+                        && rng.random_bool(f.probability.clamp(0.0, 1.0))
+                    {
+                        let t: f32 = rng.random();
+                        r.depth.data[i] = z + t * (zn - z);
+                    }
+                }
+            }
+        }
+        if let Some(g) = self.grazing {
+            let min_cos = g.max_angle_deg.to_radians().cos() as f32;
+            for (z, &c) in r.depth.data.iter_mut().zip(&r.incidence.data) {
+                if *z > 0.0 && c < min_cos {
+                    *z = 0.0;
+                }
+            }
+        }
+        if let Some(n) = self.noise {
+            for z in r.depth.data.iter_mut().filter(|z| **z > 0.0) {
+                let e: f64 = StandardNormal.sample(&mut rng);
+                let noisy = *z as f64 + n.sigma(*z as f64) * e;
+                *z = if noisy > 0.0 { noisy as f32 } else { 0.0 };
+            }
+        }
+        if let Some(q) = self.quantisation {
+            for z in r.depth.data.iter_mut().filter(|z| **z > 0.0) {
+                let zf = *z as f64;
+                let out = match q {
+                    Quantisation::Step { step } if step > 0.0 => (zf / step).round() * step,
+                    Quantisation::Step { .. } => zf,
+                    Quantisation::Disparity { focal, baseline, subpixel } => {
+                        let fb = focal * baseline;
+                        let d = (fb / zf * subpixel).round() / subpixel;
+                        if d > 0.0 { fb / d } else { 0.0 }
+                    }
+                };
+                *z = out as f32;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ic_geometry::Image;
+
+    fn flat(z: f32) -> Rendering {
+        let mut r = Rendering::empty(40, 30);
+        r.depth = Image::filled(40, 30, z);
+        r.instances = Image::filled(40, 30, 1);
+        r.incidence = Image::filled(40, 30, 1.0);
+        r
+    }
+
+    #[test]
+    fn default_is_ideal_and_noise_matches_sigma() {
+        let mut r = flat(2.0);
+        let clean = r.clone();
+        SensorConfig::default().apply(&mut r, 1);
+        assert_eq!(r, clean);
+        let cfg = SensorConfig { noise: Some(AxialNoise::default()), ..Default::default() };
+        let mut a = flat(2.0);
+        cfg.apply(&mut a, 7);
+        let mut b = flat(2.0);
+        cfg.apply(&mut b, 7);
+        assert_eq!(a, b, "seeded");
+        let n = a.depth.data.len() as f64;
+        let mean = a.depth.data.iter().map(|&z| z as f64).sum::<f64>() / n;
+        let sd = (a.depth.data.iter().map(|&z| (z as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
+        let want = AxialNoise::default().sigma(2.0);
+        assert!((sd - want).abs() < 0.1 * want, "sd {sd} vs {want}");
+        assert!((mean - 2.0).abs() < 3.0 * want / n.sqrt() + 1e-6);
+    }
+
+    #[test]
+    fn quantisation_grazing_and_flying_pixels() {
+        let mut r = flat(1.23456);
+        SensorConfig { quantisation: Some(Quantisation::Step { step: 0.001 }), ..Default::default() }.apply(&mut r, 0);
+        assert!((r.depth.data[0] - 1.235).abs() < 1e-6);
+        let mut r = flat(2.0);
+        SensorConfig { quantisation: Some(Quantisation::Disparity { focal: 580.0, baseline: 0.075, subpixel: 8.0 }), ..Default::default() }
+            .apply(&mut r, 0);
+        // d = 21.75 exactly, so 2.0 is representable.
+        assert!((r.depth.data[0] - 2.0).abs() < 1e-6);
+
+        let mut r = flat(2.0);
+        r.incidence.data[5] = 0.1; // ≈ 84°
+        SensorConfig { grazing: Some(GrazingDropout::default()), ..Default::default() }.apply(&mut r, 0);
+        assert_eq!(r.depth.data[5], 0.0);
+        assert_eq!(r.depth.data[6], 2.0);
+        assert_eq!(r.instances.data[5], 1, "ids are kept");
+
+        // A step edge: left half at 1 m, right half at 3 m.
+        let mut r = flat(1.0);
+        for v in 0..30 {
+            for u in 20..40 {
+                r.depth.data[v * 40 + u] = 3.0;
+            }
+        }
+        let cfg = SensorConfig { flying_pixels: Some(FlyingPixels { edge_threshold: 0.5, probability: 1.0 }), ..Default::default() };
+        cfg.apply(&mut r, 3);
+        for v in 0..30 {
+            let (a, b) = (r.depth.data[v * 40 + 19], r.depth.data[v * 40 + 20]);
+            assert!((1.0..=3.0).contains(&a) && (1.0..=3.0).contains(&b));
+            assert_eq!(r.depth.data[v * 40 + 10], 1.0);
+            assert_eq!(r.depth.data[v * 40 + 30], 3.0);
+        }
+        assert!((0..30).any(|v| r.depth.data[v * 40 + 19] != 1.0));
+    }
+}
