@@ -6,7 +6,8 @@
 //! `inlier_rmse` = RMS distance of the matched pairs; iteration stops when both fitness and RMSE
 //! change by less than their relative tolerances, or at `max_iterations`.
 //! Point-to-point solves each step with [`procrustes`](crate::procrustes) (Besl & McKay 1992);
-//! point-to-plane linearises the rotation (Low 2004) and solves the 6×6 normal equations with faer.
+//! point-to-plane linearises the rotation (Low 2004) and solves the 6×6 normal equations with
+//! faer's symmetric eigen-solver, leaving unconstrained motions (sliding along a plane) untouched.
 
 use glam::{DVec3, Vec3};
 use serde::{Deserialize, Serialize};
@@ -194,13 +195,27 @@ fn point_to_plane_step(source: &[Vec3], target: &[Vec3], normals: &[Vec3], pairs
             }
         }
     }
+    // Solve A·x = b by the eigen-decomposition of the symmetric A, dropping directions whose
+    // eigenvalue is below 1e-9 of the largest: on degenerate geometry (a plane, a cylinder) those
+    // motions are unconstrained and the step leaves them unchanged instead of exploding.
     let a = faer::Mat::<f64>::from_fn(6, 6, |i, j| ata[i][j]);
-    let b = faer::Mat::<f64>::from_fn(6, 1, |i, _| atb[i]);
-    let llt = a.llt(faer::Side::Lower).ok()?;
-    use faer::linalg::solvers::Solve;
-    let x = llt.solve(&b);
-    let omega = DVec3::new(x[(0, 0)], x[(1, 0)], x[(2, 0)]);
-    let v = DVec3::new(x[(3, 0)], x[(4, 0)], x[(5, 0)]);
+    let eig = a.self_adjoint_eigen(faer::Side::Lower).ok()?;
+    let (values, vectors) = (eig.S().column_vector(), eig.U());
+    let largest = (0..6).map(|i| values[i]).fold(0.0f64, f64::max);
+    if !(largest > 0.0 && largest.is_finite()) {
+        return None;
+    }
+    let mut x = [0.0f64; 6];
+    for k in 0..6 {
+        if values[k] > 1e-9 * largest {
+            let coeff = (0..6).map(|i| vectors[(i, k)] * atb[i]).sum::<f64>() / values[k];
+            for (i, xi) in x.iter_mut().enumerate() {
+                *xi += coeff * vectors[(i, k)];
+            }
+        }
+    }
+    let omega = DVec3::new(x[0], x[1], x[2]);
+    let v = DVec3::new(x[3], x[4], x[5]);
     if !(omega.is_finite() && v.is_finite()) {
         return None;
     }
@@ -284,6 +299,20 @@ mod tests {
             assert!(r.pose.rotation_angle_to(&truth) < 1e-4, "{method:?}: {r:?}");
             assert!(r.inlier_rmse < 1e-4 && r.fitness == 1.0, "{method:?}: {r:?}");
         }
+    }
+
+    #[test]
+    fn point_to_plane_on_a_plane_does_not_slide_along_unconstrained_directions() {
+        // A flat target constrains only the out-of-plane motion; the in-plane translation and
+        // the rotation about the normal must stay as they were, not explode.
+        let target: Vec<Vec3> = (0..900).map(|i| Vec3::new((i % 30) as f32 * 0.05, (i / 30) as f32 * 0.05, 0.0)).collect();
+        let normals = vec![Vec3::Z; target.len()];
+        let source: Vec<Vec3> = target.iter().step_by(3).map(|p| *p + Vec3::new(0.0, 0.0, 0.02)).collect();
+        let opts = IcpOptions { method: IcpMethod::PointToPlane, max_correspondence_distance: 0.5, max_iterations: 20, ..Default::default() };
+        let r = icp(&source, &target, Some(&normals), &Pose::IDENTITY, &opts).unwrap();
+        assert!(r.pose.translation.z.abs() > 0.0199 && r.pose.translation.z.abs() < 0.0201, "{r:?}");
+        assert!(r.pose.translation.x.abs() < 1e-6 && r.pose.translation.y.abs() < 1e-6, "{r:?}");
+        assert!(r.pose.rotation_angle() < 1e-6 && r.fitness == 1.0, "{r:?}");
     }
 
     #[test]

@@ -30,6 +30,7 @@ use crate::{Mesh, MeshError};
 /// graphs that are not trees; [`MeshError::Data`] when there are no triangles.
 pub fn read_gltf(bytes: &[u8], base_dir: Option<&Path>, path: &Path) -> Result<Mesh, MeshError> {
     let fail = |m: String| format_error(path, m);
+    check_glb_header(bytes).map_err(fail)?;
     let gltf = ::gltf::Gltf::from_slice_without_validation(bytes).map_err(|e| fail(format!("invalid glTF: {e}")))?;
     let ::gltf::Gltf { document, blob } = gltf;
     validate(document.as_json()).map_err(fail)?;
@@ -75,6 +76,22 @@ pub fn read_gltf(bytes: &[u8], base_dir: Option<&Path>, path: &Path) -> Result<M
     }
     out.validate().map_err(|e| data_error(path, e))?;
     Ok(out)
+}
+
+/// gltf 1.4 computes `declared_length - 12` for a GLB without checking it (an overflow panic
+/// for lengths below 12), so the header is checked here first.
+fn check_glb_header(bytes: &[u8]) -> Result<(), String> {
+    if !bytes.starts_with(b"glTF") {
+        return Ok(());
+    }
+    let length = bytes
+        .get(8..12)
+        .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .ok_or("the GLB header is truncated")?;
+    if length < 12 {
+        return Err(format!("the GLB header declares a total length of {length} bytes, less than the header itself"));
+    }
+    Ok(())
 }
 
 /// Runs the `gltf` crate's validation, after first checking the one reference its validation
