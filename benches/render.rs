@@ -1,25 +1,37 @@
 //! Rendering throughput (views/s): CPU reference vs wgpu (a GPU, or lavapipe) for a
 //! 10 000-triangle torus at 640×480 and 160×120, single views and batches of 16.
 //!
-//! `cargo bench -p ic_render --bench render`
+//! Run with `cargo xtask bench render` (or `cargo bench -p ic_render --bench render`). The same
+//! baseline as `benches/geometry.rs` (summing 300 000 points) is measured in the run, so figures
+//! can be reported as ratios on these shared, noisy machines.
 
 use std::hint::black_box;
 use std::sync::Arc;
 
-use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use ic_geometry::{glam::DVec3, Intrinsics, Pose, ViewSphere};
-use ic_render::{procedural, Camera, CpuRenderer, Renderer, Scene, WgpuRenderer};
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use ic_geometry::glam::{DVec3, Vec3};
+use ic_geometry::{Intrinsics, Pose, ViewSphere};
+use ic_render::{Camera, CpuRenderer, Renderer, Scene, WgpuRenderer};
 use rand::SeedableRng;
 
 fn cameras(width: u32, height: u32, n: usize) -> Vec<Camera> {
-    let k = Intrinsics::new(525.0, 525.0, 319.5, 239.5, 640, 480).unwrap().resized(width, height);
+    let k = Intrinsics::new(525.0, 525.0, 319.5, 239.5, 640, 480)
+        .unwrap()
+        .resized(width, height);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
     let sphere = ViewSphere::paper(2.8);
-    (0..n).map(|_| Camera::new(k, sphere.sample(&mut rng).camera_pose(DVec3::ZERO).unwrap())).collect()
+    (0..n)
+        .map(|_| Camera::new(k, sphere.sample(&mut rng).camera_pose(DVec3::ZERO).unwrap()))
+        .collect()
 }
 
 fn bench(c: &mut Criterion) {
-    let mesh = Arc::new(procedural::torus(0.75, 0.25, 100, 50));
+    let points: Vec<Vec3> = (0..300_000).map(|i| Vec3::splat(i as f32 * 1e-5)).collect();
+    c.bench_function("baseline/sum_300k_points", |b| {
+        b.iter(|| black_box(&points).iter().copied().sum::<Vec3>())
+    });
+
+    let mesh = Arc::new(ic_geometry::shapes::torus(0.75, 0.25, 100, 50).expect("valid torus"));
     assert_eq!(mesh.triangles.len(), 10_000);
     let scene = Scene::single(mesh, Pose::IDENTITY, 1);
     let mut gpu = match WgpuRenderer::new() {
@@ -56,9 +68,13 @@ fn bench(c: &mut Criterion) {
             });
         }
         group.throughput(Throughput::Elements(cams.len() as u64));
-        group.bench_function(BenchmarkId::new("cpu_batch16", &label), |b| b.iter(|| black_box(cpu.render_batch(&scene, &cams).unwrap())));
+        group.bench_function(BenchmarkId::new("cpu_batch16", &label), |b| {
+            b.iter(|| black_box(cpu.render_batch(&scene, &cams).unwrap()))
+        });
         if let Some(gpu) = gpu.as_mut() {
-            group.bench_function(BenchmarkId::new("wgpu_batch16", &label), |b| b.iter(|| black_box(gpu.render_batch(&scene, &cams).unwrap())));
+            group.bench_function(BenchmarkId::new("wgpu_batch16", &label), |b| {
+                b.iter(|| black_box(gpu.render_batch(&scene, &cams).unwrap()))
+            });
         }
     }
     group.finish();

@@ -5,7 +5,14 @@
 //!   default), then prints each benchmark's median next to its ratio to the baseline measured in
 //!   the same run, and writes the same table to `target/bench-summary.json`.
 //!
-//! Later issues add `train-pose`, `train-seg`, `gen-data` and `export-cases` here.
+//! - `cargo xtask gen-data` writes fixed object-alone and room test sets (BOP layout) with a
+//!   manifest (seed, configuration, objects used, counts, statistics).
+//! - `cargo xtask export-cases --set <noback|room> …` writes registration cases (`source.ply`,
+//!   `target.ply`, `gt.json`, `meta.json`; room cases also `depth.png`, `camera.json`).
+//!
+//! Later issues add `train-pose` and `train-seg` here.
+
+mod data;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -30,15 +37,31 @@ enum Cmd {
         /// Benchmarks to run (file stems under benches/); all when empty.
         names: Vec<String>,
     },
+    /// Write fixed test sets (object alone and in the room) as BOP datasets with a manifest.
+    GenData(data::GenDataArgs),
+    /// Write registration cases for other tools (Open3D, TEASER++).
+    ExportCases(data::ExportArgs),
 }
 
 /// Which crate owns each benchmark file under `benches/`.
-const BENCHES: &[(&str, &str)] = &[("geometry", "ic_geometry"), ("render", "ic_render")];
+const BENCHES: &[(&str, &str)] = &[
+    ("geometry", "ic_geometry"),
+    ("render", "ic_render"),
+    ("data", "ic_data"),
+];
 
 fn main() -> std::process::ExitCode {
     let result = match Cli::parse().command {
         Cmd::Bench { names } => bench(&names),
         Cmd::Test => test(),
+        Cmd::GenData(args) => {
+            init_tracing();
+            data::gen_data(args)
+        }
+        Cmd::ExportCases(args) => {
+            init_tracing();
+            data::export_cases(args)
+        }
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
@@ -49,13 +72,30 @@ fn main() -> std::process::ExitCode {
     }
 }
 
+/// Logs to stderr; `RUST_LOG` overrides the default `info` level.
+fn init_tracing() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
+}
+
 fn workspace_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("xtask lives in the workspace root").to_path_buf()
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("xtask lives in the workspace root")
+        .to_path_buf()
 }
 
 fn cargo(args: &[&str]) -> Result<()> {
     eprintln!("== cargo {}", args.join(" "));
-    let status = Command::new(env!("CARGO")).current_dir(workspace_root()).args(args).status().context("running cargo")?;
+    let status = Command::new(env!("CARGO"))
+        .current_dir(workspace_root())
+        .args(args)
+        .status()
+        .context("running cargo")?;
     if !status.success() {
         bail!("cargo {} failed ({status})", args.join(" "));
     }
@@ -70,21 +110,35 @@ fn test() -> Result<()> {
 fn bench(names: &[String]) -> Result<()> {
     let root = workspace_root();
     let selected: Vec<(&str, &str)> = if names.is_empty() {
-        BENCHES.iter().copied().filter(|(name, _)| root.join("benches").join(format!("{name}.rs")).exists()).collect()
+        BENCHES
+            .iter()
+            .copied()
+            .filter(|(name, _)| root.join("benches").join(format!("{name}.rs")).exists())
+            .collect()
     } else {
         names
             .iter()
             .map(|n| {
-                BENCHES.iter().copied().find(|(b, _)| b == n).with_context(|| {
-                    format!("unknown benchmark {n:?}; known: {}", BENCHES.iter().map(|b| b.0).collect::<Vec<_>>().join(", "))
-                })
+                BENCHES
+                    .iter()
+                    .copied()
+                    .find(|(b, _)| b == n)
+                    .with_context(|| {
+                        format!(
+                            "unknown benchmark {n:?}; known: {}",
+                            BENCHES.iter().map(|b| b.0).collect::<Vec<_>>().join(", ")
+                        )
+                    })
             })
             .collect::<Result<_>>()?
     };
     for (name, package) in &selected {
         cargo(&["bench", "-p", package, "--bench", name])?;
     }
-    summarise(&root.join("target/criterion"), &root.join("target/bench-summary.json"))
+    summarise(
+        &root.join("target/criterion"),
+        &root.join("target/bench-summary.json"),
+    )
 }
 
 /// Reads every `target/criterion/<group>/<bench>/new/estimates.json` and prints medians, with
@@ -92,20 +146,38 @@ fn bench(names: &[String]) -> Result<()> {
 fn summarise(criterion_dir: &Path, out: &Path) -> Result<()> {
     let mut rows = Vec::new();
     for estimates in find_estimates(criterion_dir)? {
-        let text = std::fs::read_to_string(&estimates).with_context(|| format!("reading {}", estimates.display()))?;
-        let json: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("parsing {}", estimates.display()))?;
-        let median_ns = json["median"]["point_estimate"].as_f64().with_context(|| format!("{}: no median", estimates.display()))?;
-        let id = estimates.parent().and_then(Path::parent).and_then(|p| p.strip_prefix(criterion_dir).ok()).unwrap_or(Path::new("?"));
+        let text = std::fs::read_to_string(&estimates)
+            .with_context(|| format!("reading {}", estimates.display()))?;
+        let json: serde_json::Value = serde_json::from_str(&text)
+            .with_context(|| format!("parsing {}", estimates.display()))?;
+        let median_ns = json["median"]["point_estimate"]
+            .as_f64()
+            .with_context(|| format!("{}: no median", estimates.display()))?;
+        let id = estimates
+            .parent()
+            .and_then(Path::parent)
+            .and_then(|p| p.strip_prefix(criterion_dir).ok())
+            .unwrap_or(Path::new("?"));
         rows.push((id.display().to_string(), median_ns));
     }
     rows.sort_by(|a, b| a.0.cmp(&b.0));
-    let baseline = rows.iter().find(|r| r.0.starts_with("baseline")).map(|r| r.1);
+    let baseline = rows
+        .iter()
+        .find(|r| r.0.starts_with("baseline"))
+        .map(|r| r.1);
     println!("{:<48} {:>14} {:>12}", "benchmark", "median", "× baseline");
     let mut json_rows = Vec::new();
     for (id, ns) in &rows {
         let ratio = baseline.map(|b| ns / b);
-        println!("{:<48} {:>14} {:>12}", id, human(*ns), ratio.map_or("-".into(), |r| format!("{r:.1}")));
-        json_rows.push(serde_json::json!({"benchmark": id, "median_ns": ns, "ratio_to_baseline": ratio}));
+        println!(
+            "{:<48} {:>14} {:>12}",
+            id,
+            human(*ns),
+            ratio.map_or("-".into(), |r| format!("{r:.1}"))
+        );
+        json_rows.push(
+            serde_json::json!({"benchmark": id, "median_ns": ns, "ratio_to_baseline": ratio}),
+        );
     }
     let tmp = out.with_extension("json.tmp");
     std::fs::write(&tmp, serde_json::to_string_pretty(&json_rows)?)?;
@@ -125,7 +197,9 @@ fn find_estimates(dir: &Path) -> Result<Vec<PathBuf>> {
             let path = entry?.path();
             if path.is_dir() {
                 stack.push(path);
-            } else if path.file_name().is_some_and(|n| n == "estimates.json") && path.parent().is_some_and(|p| p.ends_with("new")) {
+            } else if path.file_name().is_some_and(|n| n == "estimates.json")
+                && path.parent().is_some_and(|p| p.ends_with("new"))
+            {
                 found.push(path);
             }
         }

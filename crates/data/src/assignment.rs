@@ -24,9 +24,17 @@ impl Assignment {
     /// Mutual nearest neighbours between `pose·model` and `observed` closer than `threshold`.
     ///
     /// Errors: empty or non-finite point sets, or a non-finite / negative threshold.
-    pub fn from_pose(model: &[Vec3], observed: &[Vec3], pose: &Pose, threshold: f32) -> Result<Assignment, GeometryError> {
+    pub fn from_pose(
+        model: &[Vec3],
+        observed: &[Vec3],
+        pose: &Pose,
+        threshold: f32,
+    ) -> Result<Assignment, GeometryError> {
         if !(threshold.is_finite() && threshold >= 0.0) {
-            return Err(GeometryError::InvalidParameter { name: "match threshold", message: format!("must be finite and ≥ 0, got {threshold}") });
+            return Err(GeometryError::InvalidParameter {
+                name: "match threshold",
+                message: format!("must be finite and ≥ 0, got {threshold}"),
+            });
         }
         let moved = pose.apply_all(model);
         let model_tree = KdTree::new(&moved)?;
@@ -36,19 +44,32 @@ impl Assignment {
         let observed_to_model = forward
             .iter()
             .enumerate()
-            .map(|(j, n)| (n.distance < threshold && backward[n.index].index == j).then_some(n.index as u32))
+            .map(|(j, n)| {
+                (n.distance < threshold && backward[n.index].index == j).then_some(n.index as u32)
+            })
             .collect();
-        Ok(Assignment { model_count: model.len(), observed_count: observed.len(), observed_to_model })
+        Ok(Assignment {
+            model_count: model.len(),
+            observed_count: observed.len(),
+            observed_to_model,
+        })
     }
 
     /// Number of matched pairs (inliers).
     pub fn inlier_count(&self) -> usize {
-        self.observed_to_model.iter().filter(|m| m.is_some()).count()
+        self.observed_to_model
+            .iter()
+            .filter(|m| m.is_some())
+            .count()
     }
 
     /// Fraction of observed points that have a match.
     pub fn observed_inlier_rate(&self) -> f64 {
-        if self.observed_count == 0 { 0.0 } else { self.inlier_count() as f64 / self.observed_count as f64 }
+        if self.observed_count == 0 {
+            0.0
+        } else {
+            self.inlier_count() as f64 / self.observed_count as f64
+        }
     }
 
     /// For each model point, the matched observed point or `None`.
@@ -66,7 +87,11 @@ impl Assignment {
 
     /// Matched pairs `(model index, observed index)`, in observed order.
     pub fn pairs(&self) -> Vec<(usize, usize)> {
-        self.observed_to_model.iter().enumerate().filter_map(|(j, m)| m.map(|i| (i as usize, j))).collect()
+        self.observed_to_model
+            .iter()
+            .enumerate()
+            .filter_map(|(j, m)| m.map(|i| (i as usize, j)))
+            .collect()
     }
 
     /// The dense M̄, row-major (M+1)×(N+1): rows are model points, columns observed points, the
@@ -100,7 +125,12 @@ mod tests {
     fn mutual_nearest_neighbours_within_the_threshold_match() {
         let model = vec![Vec3::ZERO, Vec3::X, Vec3::new(5.0, 0.0, 0.0)];
         let pose = Pose::from_translation(DVec3::new(0.0, 0.0, 2.0));
-        let observed = vec![Vec3::new(0.0, 0.0, 2.01), Vec3::new(1.0, 0.0, 2.02), Vec3::new(1.0, 0.0, 2.03), Vec3::new(9.0, 9.0, 9.0)];
+        let observed = vec![
+            Vec3::new(0.0, 0.0, 2.01),
+            Vec3::new(1.0, 0.0, 2.02),
+            Vec3::new(1.0, 0.0, 2.03),
+            Vec3::new(9.0, 9.0, 9.0),
+        ];
         let a = Assignment::from_pose(&model, &observed, &pose, 0.05).unwrap();
         assert_eq!(a.observed_to_model, vec![Some(0), Some(1), None, None]);
         assert_eq!(a.inlier_count(), 2);

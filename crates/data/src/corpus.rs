@@ -54,7 +54,10 @@ impl std::str::FromStr for Split {
         match s {
             "train" => Ok(Split::Train),
             "test" => Ok(Split::Test),
-            _ => Err(DataError::Config { field: "split", message: format!("expected train or test, got {s:?}") }),
+            _ => Err(DataError::Config {
+                field: "split",
+                message: format!("expected train or test, got {s:?}"),
+            }),
         }
     }
 }
@@ -73,7 +76,10 @@ pub enum FolderSplit {
 impl FolderSplit {
     /// The split of the 1000-blob folder: 000–799 train, 800–999 test.
     pub fn blobs() -> Self {
-        FolderSplit::IdRange { train: (0, 799), test: (800, 999) }
+        FolderSplit::IdRange {
+            train: (0, 799),
+            test: (800, 999),
+        }
     }
 }
 
@@ -101,7 +107,11 @@ pub struct CorpusOptions {
 
 impl Default for CorpusOptions {
     fn default() -> Self {
-        CorpusOptions { on_bad_mesh: OnBadMesh::Skip, model_points: 4096, visible_surface: VisibleSurfaceOptions::default() }
+        CorpusOptions {
+            on_bad_mesh: OnBadMesh::Skip,
+            model_points: 4096,
+            visible_surface: VisibleSurfaceOptions::default(),
+        }
     }
 }
 
@@ -185,7 +195,9 @@ impl fmt::Debug for Corpus {
 const MESH_EXTENSIONS: &[&str] = &["obj", "off", "ply", "gltf", "glb"];
 
 fn has_mesh_extension(path: &Path) -> bool {
-    path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase()).is_some_and(|e| MESH_EXTENSIONS.contains(&e.as_str()))
+    path.extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .is_some_and(|e| MESH_EXTENSIONS.contains(&e.as_str()))
 }
 
 fn read_dir_sorted(dir: &Path) -> Result<Vec<PathBuf>, DataError> {
@@ -198,15 +210,36 @@ fn read_dir_sorted(dir: &Path) -> Result<Vec<PathBuf>, DataError> {
 }
 
 impl Corpus {
-    fn from_entries(kind: CorpusKind, folder: Option<PathBuf>, split: Split, entries: Vec<ObjectEntry>, options: CorpusOptions) -> Result<Self, DataError> {
+    fn from_entries(
+        kind: CorpusKind,
+        folder: Option<PathBuf>,
+        split: Split,
+        entries: Vec<ObjectEntry>,
+        options: CorpusOptions,
+    ) -> Result<Self, DataError> {
         if options.model_points == 0 {
-            return Err(DataError::Config { field: "model_points", message: "must be ≥ 1".into() });
+            return Err(DataError::Config {
+                field: "model_points",
+                message: "must be ≥ 1".into(),
+            });
         }
-        Ok(Corpus { kind, folder, split, entries, options, cache: Mutex::new(HashMap::new()), skipped: AtomicUsize::new(0) })
+        Ok(Corpus {
+            kind,
+            folder,
+            split,
+            entries,
+            options,
+            cache: Mutex::new(HashMap::new()),
+            skipped: AtomicUsize::new(0),
+        })
     }
 
     /// A ModelNet40 folder: `<root>/<class>/{train,test}/*.off`. Ids are `class/stem`.
-    pub fn modelnet40(root: impl AsRef<Path>, split: Split, options: CorpusOptions) -> Result<Self, DataError> {
+    pub fn modelnet40(
+        root: impl AsRef<Path>,
+        split: Split,
+        options: CorpusOptions,
+    ) -> Result<Self, DataError> {
         let root = root.as_ref();
         let mut entries = Vec::new();
         let mut classes = 0;
@@ -219,11 +252,21 @@ impl Corpus {
                 continue;
             }
             classes += 1;
-            let class = class_dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            let class = class_dir
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
             for file in read_dir_sorted(&split_dir)? {
                 if file.is_file() && has_mesh_extension(&file) {
-                    let stem = file.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-                    entries.push(ObjectEntry { id: format!("{class}/{stem}"), source: ObjectSource::File(file), bop_obj_id: None });
+                    let stem = file
+                        .file_stem()
+                        .map(|s| s.to_string_lossy().into_owned())
+                        .unwrap_or_default();
+                    entries.push(ObjectEntry {
+                        id: format!("{class}/{stem}"),
+                        source: ObjectSource::File(file),
+                        bop_obj_id: None,
+                    });
                 }
             }
         }
@@ -231,17 +274,38 @@ impl Corpus {
             return Err(DataError::EmptySplit {
                 folder: root.to_path_buf(),
                 split: split.to_string(),
-                detail: format!("expected <class>/{}/*.off; found {classes} class folder(s) with that split", split),
+                detail: format!(
+                    "expected <class>/{}/*.off; found {classes} class folder(s) with that split",
+                    split
+                ),
             });
         }
-        Self::from_entries(CorpusKind::ModelNet40, Some(root.to_path_buf()), split, entries, options)
+        Self::from_entries(
+            CorpusKind::ModelNet40,
+            Some(root.to_path_buf()),
+            split,
+            entries,
+            options,
+        )
     }
 
     /// A flat folder of meshes (`.obj`, `.off`, `.ply`, `.gltf`, `.glb`); ids are file stems.
-    pub fn mesh_folder(dir: impl AsRef<Path>, how: &FolderSplit, split: Split, options: CorpusOptions) -> Result<Self, DataError> {
+    pub fn mesh_folder(
+        dir: impl AsRef<Path>,
+        how: &FolderSplit,
+        split: Split,
+        options: CorpusOptions,
+    ) -> Result<Self, DataError> {
         let dir = dir.as_ref();
-        let files: Vec<PathBuf> = read_dir_sorted(dir)?.into_iter().filter(|p| p.is_file() && has_mesh_extension(p)).collect();
-        let stem = |p: &Path| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        let files: Vec<PathBuf> = read_dir_sorted(dir)?
+            .into_iter()
+            .filter(|p| p.is_file() && has_mesh_extension(p))
+            .collect();
+        let stem = |p: &Path| {
+            p.file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default()
+        };
         let keep: Box<dyn Fn(&str) -> bool> = match how {
             FolderSplit::IdRange { train, test } => {
                 let (lo, hi) = if split == Split::Train { *train } else { *test };
@@ -249,55 +313,92 @@ impl Corpus {
             }
             FolderSplit::File(path) => {
                 let text = std::fs::read_to_string(path).map_err(DataError::io(path))?;
-                let json: serde_json::Value = serde_json::from_str(&text).map_err(|e| DataError::json(path, e))?;
+                let json: serde_json::Value =
+                    serde_json::from_str(&text).map_err(|e| DataError::json(path, e))?;
                 let list = json
                     .get(split.as_str())
                     .and_then(|v| v.as_array())
-                    .ok_or_else(|| DataError::json(path, format!("no {:?} list of file stems", split.as_str())))?;
+                    .ok_or_else(|| {
+                        DataError::json(path, format!("no {:?} list of file stems", split.as_str()))
+                    })?;
                 let mut ids = std::collections::HashSet::new();
                 for (i, v) in list.iter().enumerate() {
                     let s = match v {
                         serde_json::Value::String(s) => s.clone(),
                         serde_json::Value::Number(n) => n.to_string(),
-                        _ => return Err(DataError::json(path, format!("{}[{i}] is not a string or number", split.as_str()))),
+                        _ => {
+                            return Err(DataError::json(
+                                path,
+                                format!("{}[{i}] is not a string or number", split.as_str()),
+                            ));
+                        }
                     };
                     ids.insert(s);
                 }
-                Box::new(move |s: &str| ids.contains(s) || s.parse::<u64>().is_ok_and(|n| ids.contains(&n.to_string())))
+                Box::new(move |s: &str| {
+                    ids.contains(s) || s.parse::<u64>().is_ok_and(|n| ids.contains(&n.to_string()))
+                })
             }
         };
         let entries: Vec<ObjectEntry> = files
             .iter()
             .filter(|p| keep(&stem(p)))
-            .map(|p| ObjectEntry { id: stem(p), source: ObjectSource::File(p.clone()), bop_obj_id: None })
+            .map(|p| ObjectEntry {
+                id: stem(p),
+                source: ObjectSource::File(p.clone()),
+                bop_obj_id: None,
+            })
             .collect();
         if entries.is_empty() {
             return Err(DataError::EmptySplit {
                 folder: dir.to_path_buf(),
                 split: split.to_string(),
-                detail: format!("{} mesh file(s) in the folder, none selected by {how:?}", files.len()),
+                detail: format!(
+                    "{} mesh file(s) in the folder, none selected by {how:?}",
+                    files.len()
+                ),
             });
         }
-        Self::from_entries(CorpusKind::MeshFolder, Some(dir.to_path_buf()), split, entries, options)
+        Self::from_entries(
+            CorpusKind::MeshFolder,
+            Some(dir.to_path_buf()),
+            split,
+            entries,
+            options,
+        )
     }
 
     /// A BOP `models/` folder (`obj_XXXXXX.ply`, millimetres; `models_info.json` lists the ids
     /// when present). BOP has no object split: every model is listed, under `split`.
-    pub fn bop_models(dir: impl AsRef<Path>, split: Split, options: CorpusOptions) -> Result<Self, DataError> {
+    pub fn bop_models(
+        dir: impl AsRef<Path>,
+        split: Split,
+        options: CorpusOptions,
+    ) -> Result<Self, DataError> {
         let dir = dir.as_ref();
         let info_path = dir.join("models_info.json");
         let mut ids: Vec<u32> = Vec::new();
         if info_path.is_file() {
             let text = std::fs::read_to_string(&info_path).map_err(DataError::io(&info_path))?;
-            let json: serde_json::Value = serde_json::from_str(&text).map_err(|e| DataError::json(&info_path, e))?;
-            let obj = json.as_object().ok_or_else(|| DataError::json(&info_path, "expected an object keyed by obj_id"))?;
+            let json: serde_json::Value =
+                serde_json::from_str(&text).map_err(|e| DataError::json(&info_path, e))?;
+            let obj = json
+                .as_object()
+                .ok_or_else(|| DataError::json(&info_path, "expected an object keyed by obj_id"))?;
             for k in obj.keys() {
-                ids.push(k.parse().map_err(|_| DataError::json(&info_path, format!("key {k:?} is not an integer obj_id")))?);
+                ids.push(k.parse().map_err(|_| {
+                    DataError::json(&info_path, format!("key {k:?} is not an integer obj_id"))
+                })?);
             }
         } else {
             for p in read_dir_sorted(dir)? {
-                let name = p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-                if let Some(num) = name.strip_prefix("obj_").and_then(|r| r.strip_suffix(".ply"))
+                let name = p
+                    .file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_default();
+                if let Some(num) = name
+                    .strip_prefix("obj_")
+                    .and_then(|r| r.strip_suffix(".ply"))
                     && let Ok(id) = num.parse()
                 {
                     ids.push(id);
@@ -321,20 +422,42 @@ impl Corpus {
                 bop_obj_id: Some(id),
             })
             .collect();
-        Self::from_entries(CorpusKind::BopModels, Some(dir.to_path_buf()), split, entries, options)
+        Self::from_entries(
+            CorpusKind::BopModels,
+            Some(dir.to_path_buf()),
+            split,
+            entries,
+            options,
+        )
     }
 
     /// `count` procedural objects of `split` (`random_object` with seeds derived from `seed`,
     /// the split and the object number, so train and test objects differ).
-    pub fn procedural(count: usize, split: Split, seed: u64, options: CorpusOptions) -> Result<Self, DataError> {
+    pub fn procedural(
+        count: usize,
+        split: Split,
+        seed: u64,
+        options: CorpusOptions,
+    ) -> Result<Self, DataError> {
         if count == 0 {
-            return Err(DataError::Config { field: "procedural count", message: "must be ≥ 1".into() });
+            return Err(DataError::Config {
+                field: "procedural count",
+                message: "must be ≥ 1".into(),
+            });
         }
-        let tag = if split == Split::Train { 0x7261_696e } else { 0x7465_7374 };
+        let tag = if split == Split::Train {
+            0x7261_696e
+        } else {
+            0x7465_7374
+        };
         let entries = (0..count)
             .map(|k| {
                 let s = mix(mix(seed, tag), k as u64);
-                ObjectEntry { id: format!("proc_{s:016x}"), source: ObjectSource::Procedural(s), bop_obj_id: None }
+                ObjectEntry {
+                    id: format!("proc_{s:016x}"),
+                    source: ObjectSource::Procedural(s),
+                    bop_obj_id: None,
+                }
             })
             .collect();
         Self::from_entries(CorpusKind::Procedural, None, split, entries, options)
@@ -367,11 +490,19 @@ impl Corpus {
 
     /// A description for manifests.
     pub fn info(&self) -> CorpusInfo {
-        CorpusInfo { kind: self.kind.clone(), folder: self.folder.clone(), split: self.split, objects: self.len(), skipped: self.skipped() }
+        CorpusInfo {
+            kind: self.kind.clone(),
+            folder: self.folder.clone(),
+            split: self.split,
+            objects: self.len(),
+            skipped: self.skipped(),
+        }
     }
 
     fn folder_display(&self) -> PathBuf {
-        self.folder.clone().unwrap_or_else(|| PathBuf::from("<procedural>"))
+        self.folder
+            .clone()
+            .unwrap_or_else(|| PathBuf::from("<procedural>"))
     }
 
     /// The object at `index`, loaded and cached on first use. Fails with the object's error
@@ -379,7 +510,10 @@ impl Corpus {
     pub fn object(&self, index: usize) -> Result<Arc<CorpusObject>, DataError> {
         let entry = self.entries.get(index).ok_or_else(|| DataError::Config {
             field: "object index",
-            message: format!("{index} is out of range (the corpus holds {} objects)", self.entries.len()),
+            message: format!(
+                "{index} is out of range (the corpus holds {} objects)",
+                self.entries.len()
+            ),
         })?;
         let slot = {
             let mut cache = self.cache.lock().unwrap_or_else(|e| e.into_inner());
@@ -393,7 +527,9 @@ impl Corpus {
             }
             r
         });
-        result.clone().map_err(|(path, message)| DataError::BadMesh { path, message })
+        result
+            .clone()
+            .map_err(|(path, message)| DataError::BadMesh { path, message })
     }
 
     /// The object with this id, if listed.
@@ -422,14 +558,21 @@ impl Corpus {
                 return Ok(o);
             }
         }
-        Err(DataError::NoUsableObject { folder: self.folder_display(), split: self.split.to_string(), skipped: self.skipped() })
+        Err(DataError::NoUsableObject {
+            folder: self.folder_display(),
+            split: self.split.to_string(),
+            skipped: self.skipped(),
+        })
     }
 
     /// Loads every object now (in parallel). Returns the number of usable objects; fails on the
     /// first bad mesh under [`OnBadMesh::Stop`], or when none is usable.
     pub fn preload(&self) -> Result<usize, DataError> {
         use rayon::prelude::*;
-        let results: Vec<Result<Arc<CorpusObject>, DataError>> = (0..self.entries.len()).into_par_iter().map(|i| self.object(i)).collect();
+        let results: Vec<Result<Arc<CorpusObject>, DataError>> = (0..self.entries.len())
+            .into_par_iter()
+            .map(|i| self.object(i))
+            .collect();
         let mut good = 0;
         for r in results {
             match r {
@@ -439,23 +582,43 @@ impl Corpus {
             }
         }
         if good == 0 {
-            return Err(DataError::NoUsableObject { folder: self.folder_display(), split: self.split.to_string(), skipped: self.skipped() });
+            return Err(DataError::NoUsableObject {
+                folder: self.folder_display(),
+                split: self.split.to_string(),
+                skipped: self.skipped(),
+            });
         }
         Ok(good)
     }
 }
 
-fn load_object(entry: &ObjectEntry, index: usize, options: &CorpusOptions) -> Result<Arc<CorpusObject>, (PathBuf, String)> {
+fn load_object(
+    entry: &ObjectEntry,
+    index: usize,
+    options: &CorpusOptions,
+) -> Result<Arc<CorpusObject>, (PathBuf, String)> {
     let (path, mut mesh, seed) = match &entry.source {
         ObjectSource::File(path) => {
-            let mesh = ic_geometry::io::load_mesh(path).map_err(|e| (path.clone(), e.to_string()))?;
+            let mesh =
+                ic_geometry::io::load_mesh(path).map_err(|e| (path.clone(), e.to_string()))?;
             // The sampling seed comes from the id, so it does not depend on the load order.
-            (path.clone(), mesh, mix(0x6d6f_6465_6c, fnv1a(entry.id.as_bytes())))
+            (
+                path.clone(),
+                mesh,
+                mix(0x006d_6f64_656c, fnv1a(entry.id.as_bytes())),
+            )
         }
-        ObjectSource::Procedural(s) => (PathBuf::from(format!("<procedural {s:#x}>")), ic_geometry::shapes::random_object(*s), mix(*s, 1)),
+        ObjectSource::Procedural(s) => (
+            PathBuf::from(format!("<procedural {s:#x}>")),
+            ic_geometry::shapes::random_object(*s),
+            mix(*s, 1),
+        ),
     };
-    let normalisation = mesh.normalise().map_err(|e| (path.clone(), e.to_string()))?;
-    let cloud = sample_visible_surface(&mesh, options.model_points, seed, options.visible_surface).map_err(|e| (path.clone(), e.to_string()))?;
+    let normalisation = mesh
+        .normalise()
+        .map_err(|e| (path.clone(), e.to_string()))?;
+    let cloud = sample_visible_surface(&mesh, options.model_points, seed, options.visible_surface)
+        .map_err(|e| (path.clone(), e.to_string()))?;
     if cloud.points.is_empty() {
         return Err((path, "no visible surface could be sampled".into()));
     }
@@ -470,5 +633,7 @@ fn load_object(entry: &ObjectEntry, index: usize, options: &CorpusOptions) -> Re
 }
 
 fn fnv1a(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3))
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+        (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
+    })
 }

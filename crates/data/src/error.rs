@@ -14,7 +14,11 @@ pub enum DataError {
     },
     /// A corpus folder holds no object for the requested split.
     #[error("{folder}: the {split} split is empty ({detail})")]
-    EmptySplit { folder: PathBuf, split: String, detail: String },
+    EmptySplit {
+        folder: PathBuf,
+        split: String,
+        detail: String,
+    },
     /// A corpus folder does not have the expected layout.
     #[error("{folder}: {message}")]
     Layout { folder: PathBuf, message: String },
@@ -27,13 +31,20 @@ pub enum DataError {
     BadMesh { path: PathBuf, message: String },
     /// Every object of the corpus failed to load.
     #[error("{folder}: no object of the {split} split could be loaded ({skipped} skipped)")]
-    NoUsableObject { folder: PathBuf, split: String, skipped: usize },
+    NoUsableObject {
+        folder: PathBuf,
+        split: String,
+        skipped: usize,
+    },
     /// A JSON file is malformed or misses a field.
     #[error("{path}: {message}")]
     Json { path: PathBuf, message: String },
     /// A configuration value is out of range.
     #[error("invalid configuration: {field}: {message}")]
-    Config { field: &'static str, message: String },
+    Config {
+        field: &'static str,
+        message: String,
+    },
     /// A geometric operation failed.
     #[error(transparent)]
     Geometry(#[from] ic_geometry::GeometryError),
@@ -58,6 +69,9 @@ impl DataError {
     }
 
     pub(crate) fn json(path: impl Into<PathBuf>, message: impl std::fmt::Display) -> DataError {
-        DataError::Json { path: path.into(), message: message.to_string() }
+        DataError::Json {
+            path: path.into(),
+            message: message.to_string(),
+        }
     }
 }

@@ -1,0 +1,139 @@
+//! Registration cases for other tools (Open3D, TEASER++, our own CLI): one folder per case.
+//!
+//! - `source.ply`: the model points X (model frame, normalised units), binary little-endian
+//!   `float x y z`;
+//! - `target.ply`: the observed points — the N sampled object points (object alone) or the
+//!   whole voxelised scene (room) — camera frame, normalised units;
+//! - `gt.json`: `{"R": [[…], […], […]], "t": [x, y, z]}` with `target ≈ R·source + t`
+//!   (R row-major);
+//! - `meta.json`: object id, sample index, seed, counts, inlier rate;
+//! - room cases also hold `depth.png` (16-bit, `stored × depth_scale = mm`, 1 normalised unit
+//!   = `unit_mm` mm) and `camera.json` (`cam_K` row-major 9 numbers, `depth_scale`, `width`,
+//!   `height`, `unit_mm`): back-projecting `depth.png` with `cam_K` and dividing by `unit_mm`
+//!   gives the scene in the units of `target.ply` (before voxelising).
+//!
+//! Every file is written atomically (temporary file + rename).
+
+use std::path::Path;
+
+use ic_geometry::io::{PlyEncoding, write_ply};
+use ic_geometry::{Image, PointCloud, Pose};
+use serde_json::{Value, json};
+
+use crate::{DataError, ObjectSample, ROOM_UNIT_MM, RoomSample};
+
+pub(crate) fn write_json_atomic(path: &Path, value: &Value) -> Result<(), DataError> {
+    let text = serde_json::to_string_pretty(value).map_err(|e| DataError::json(path, e))?;
+    ic_render::io::write_atomic(path, |w| {
+        std::io::Write::write_all(w, text.as_bytes()).map_err(|source| {
+            ic_render::ImageIoError::Io {
+                path: path.to_path_buf(),
+                source,
+            }
+        })
+    })?;
+    Ok(())
+}
+
+/// `{"R": rows, "t": [x, y, z]}`.
+pub fn pose_json(pose: &Pose) -> Value {
+    let t = pose.translation;
+    json!({"R": pose.rotation_row_major(), "t": [t.x, t.y, t.z]})
+}
+
+fn write_common(
+    dir: &Path,
+    source: &[ic_geometry::glam::Vec3],
+    target: &[ic_geometry::glam::Vec3],
+    pose: &Pose,
+    meta: Value,
+) -> Result<(), DataError> {
+    std::fs::create_dir_all(dir).map_err(DataError::io(dir))?;
+    write_ply(
+        dir.join("source.ply"),
+        &PointCloud::from_points(source.to_vec()),
+        PlyEncoding::BinaryLittleEndian,
+    )?;
+    write_ply(
+        dir.join("target.ply"),
+        &PointCloud::from_points(target.to_vec()),
+        PlyEncoding::BinaryLittleEndian,
+    )?;
+    write_json_atomic(&dir.join("gt.json"), &pose_json(pose))?;
+    write_json_atomic(&dir.join("meta.json"), &meta)
+}
+
+/// Writes an object-alone case into `dir` (created if needed).
+pub fn write_object_case(
+    dir: impl AsRef<Path>,
+    sample: &ObjectSample,
+    seed: u64,
+) -> Result<(), DataError> {
+    let meta = json!({
+        "set": "noback",
+        "object_id": sample.object_id,
+        "index": sample.index,
+        "seed": seed,
+        "source_points": sample.model_points.len(),
+        "target_points": sample.observed_points.len(),
+        "observed_voxels": sample.observed_voxels,
+        "inliers": sample.inlier_count(),
+        "inlier_rate": sample.assignment.observed_inlier_rate(),
+        "units": "normalised object units",
+    });
+    write_common(
+        dir.as_ref(),
+        &sample.model_points,
+        &sample.observed_points,
+        &sample.pose,
+        meta,
+    )
+}
+
+/// Writes a room case into `dir`: the common files plus `depth.png` and `camera.json`
+/// (1 unit = [`ROOM_UNIT_MM`] mm, depth scale 1.0).
+pub fn write_room_case(
+    dir: impl AsRef<Path>,
+    sample: &RoomSample,
+    seed: u64,
+) -> Result<(), DataError> {
+    let dir = dir.as_ref();
+    let unit_mm = ROOM_UNIT_MM;
+    let depth_scale = 1.0;
+    let meta = json!({
+        "set": "room",
+        "object_id": sample.object_id,
+        "index": sample.index,
+        "seed": seed,
+        "source_points": sample.model_points.len(),
+        "target_points": sample.scene_points.len(),
+        "object_points": sample.object_point_count(),
+        "inlier_rate": sample.inlier_rate,
+        "bbox_visib": sample.bbox_visib,
+        "units": "normalised object units",
+        "unit_mm": unit_mm,
+    });
+    write_common(
+        dir,
+        &sample.model_points,
+        &sample.scene_points,
+        &sample.pose,
+        meta,
+    )?;
+    let k = sample.intrinsics;
+    let metres = Image {
+        width: k.width,
+        height: k.height,
+        data: sample
+            .depth
+            .data
+            .iter()
+            .map(|&z| (z as f64 * unit_mm / 1000.0) as f32)
+            .collect(),
+    };
+    ic_render::io::write_depth_png(dir.join("depth.png"), &metres, depth_scale)?;
+    write_json_atomic(
+        &dir.join("camera.json"),
+        &json!({"cam_K": k.k_row_major().concat(), "depth_scale": depth_scale, "width": k.width, "height": k.height, "unit_mm": unit_mm}),
+    )
+}

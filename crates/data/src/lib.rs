@@ -49,9 +49,17 @@ pub mod bop;
 pub mod export;
 
 pub use assignment::Assignment;
-pub use corpus::{Corpus, CorpusInfo, CorpusKind, CorpusObject, CorpusOptions, FolderSplit, ObjectEntry, ObjectSource, OnBadMesh, Split};
+pub use corpus::{
+    Corpus, CorpusInfo, CorpusKind, CorpusObject, CorpusOptions, FolderSplit, ObjectEntry,
+    ObjectSource, OnBadMesh, Split,
+};
 pub use error::DataError;
 pub use prefetch::{Batches, Prefetcher};
-pub use room::{ROOM_UNIT_MM, RoomSample, RoomSampleConfig, RoomSampleGenerator, mask_bbox, voxelise_scene};
-pub use sample::{ObjectSample, ObjectSampleConfig, ObjectSampleGenerator, PAPER_MATCH_THRESHOLD, PAPER_VOXEL_SIZE};
+pub use room::{
+    ROOM_UNIT_MM, RoomSample, RoomSampleConfig, RoomSampleGenerator, mask_bbox, voxelise_scene,
+};
+pub use sample::{
+    ObjectSample, ObjectSampleConfig, ObjectSampleGenerator, PAPER_MATCH_THRESHOLD,
+    PAPER_VOXEL_SIZE,
+};
 pub use seed::{mix as mix_seed, sample_rng};

@@ -48,8 +48,11 @@ impl<T: Send + 'static> Prefetcher<T> {
                 .spawn(move || {
                     let mut i = start + w as u64;
                     while end.is_none_or(|e| i < e) && !stop.load(Ordering::Relaxed) {
-                        let item = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| make(i)))
-                            .unwrap_or_else(|_| Err(DataError::Worker(format!("sample {i} panicked"))));
+                        let item =
+                            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| make(i)))
+                                .unwrap_or_else(|_| {
+                                    Err(DataError::Worker(format!("sample {i} panicked")))
+                                });
                         if tx.send(item).is_err() {
                             break;
                         }
@@ -60,13 +63,23 @@ impl<T: Send + 'static> Prefetcher<T> {
             receivers.push(rx);
             handles.push(handle);
         }
-        Prefetcher { receivers, handles, stop, next: start, start, end }
+        Prefetcher {
+            receivers,
+            handles,
+            stop,
+            next: start,
+            start,
+            end,
+        }
     }
 
     /// Groups the items into batches of `size` (≥ 1); the last batch may be shorter. A batch
     /// with a failed item yields that item's error.
     pub fn batches(self, size: usize) -> Batches<T> {
-        Batches { inner: self, size: size.max(1) }
+        Batches {
+            inner: self,
+            size: size.max(1),
+        }
     }
 }
 
@@ -80,7 +93,10 @@ impl<T> Iterator for Prefetcher<T> {
         let w = ((self.next - self.start) % self.receivers.len() as u64) as usize;
         let item = match self.receivers[w].recv() {
             Ok(item) => item,
-            Err(_) => Err(DataError::Worker(format!("worker {w} stopped before producing sample {}", self.next))),
+            Err(_) => Err(DataError::Worker(format!(
+                "worker {w} stopped before producing sample {}",
+                self.next
+            ))),
         };
         self.next += 1;
         Some(item)
@@ -135,7 +151,10 @@ mod tests {
             .collect();
             assert_eq!(items, (5..25).map(|i| i * i).collect::<Vec<_>>());
         }
-        let batches: Vec<Vec<u64>> = Prefetcher::new(0, Some(7), 2, 1, Ok).batches(3).map(|b| b.unwrap()).collect();
+        let batches: Vec<Vec<u64>> = Prefetcher::new(0, Some(7), 2, 1, Ok)
+            .batches(3)
+            .map(|b| b.unwrap())
+            .collect();
         assert_eq!(batches, vec![vec![0, 1, 2], vec![3, 4, 5], vec![6]]);
     }
 
@@ -145,7 +164,14 @@ mod tests {
             if i == 2 {
                 panic!("boom");
             }
-            if i == 3 { Err(DataError::Sample { index: i, message: "nope".into() }) } else { Ok(i) }
+            if i == 3 {
+                Err(DataError::Sample {
+                    index: i,
+                    message: "nope".into(),
+                })
+            } else {
+                Ok(i)
+            }
         })
         .collect();
         assert!(items[0].is_ok() && items[1].is_ok() && items[2].is_err() && items[3].is_err());

@@ -10,7 +10,7 @@
 //! around objects about 20 cm across, i.e. **1 object unit = 1 dm = 100 mm** (the same unit
 //! we write to BOP files): the default room has side 40 units. The object stands on the
 //! floor or floats a little above it at a random place, and the camera looks at it from the
-//! paper's view sphere at a distance drawn uniformly in 2.8–12 units (28 cm – 1.2 m; 2.8 is
+//! paper's view sphere at a distance drawn uniformly in 3.2–12 units (32 cm – 1.2 m; 2.8 is
 //! the object-alone distance at which the object fills the image). Measured on procedural
 //! objects, a fixed distance gives a narrow band of inlier rates (median 12 % at 2.8, 5 % at
 //! 5, 3 % at 8); the range reproduces the paper's spread.
@@ -22,8 +22,13 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
 use glam::Vec3;
-use ic_geometry::{DepthImage, Intrinsics, Mask, Normalisation, PointCloud, Pose, ViewSphere, Viewpoint, random_subsample_indices, voxel_downsample};
-use ic_render::{Background, CpuRenderer, OBJECT_ID, Renderer, RoomConfig, Scene, SceneBuilder, SceneConfig};
+use ic_geometry::{
+    DepthImage, Intrinsics, Mask, Normalisation, PointCloud, Pose, ViewSphere, Viewpoint,
+    random_subsample_indices, voxel_downsample,
+};
+use ic_render::{
+    Background, CpuRenderer, OBJECT_ID, Renderer, RoomConfig, Scene, SceneBuilder, SceneConfig,
+};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
@@ -46,7 +51,7 @@ pub struct RoomSampleConfig {
     /// M model points drawn from the object's cached model points (the paper: 1024).
     pub model_points: usize,
     /// Range of the camera's distance to the object's centre (`scene.view.distance` is
-    /// replaced by a draw from it). Default 2.8–12 (28 cm to 1.2 m): the inlier rate falls
+    /// replaced by a draw from it). Default 3.2–12 (32 cm to 1.2 m): the inlier rate falls
     /// roughly with the square of the distance (measured medians: 12 % at 2.8, 5 % at 5, 3 % at
     /// 8 for procedural objects), so a uniform distance in this range reproduces the paper's
     /// spread, 0.5 %–23.5 % with about four samples in five below 5 %.
@@ -64,8 +69,21 @@ impl Default for RoomSampleConfig {
         RoomSampleConfig {
             scene: SceneConfig {
                 background: Background::Room,
-                room: RoomConfig { side: 40.0, subdivisions: 24, bump_amplitude: 0.5, bumps_per_face: 8, seed: 0 },
-                intrinsics: Intrinsics { fx: 525.0, fy: 525.0, cx: 319.5, cy: 239.5, width: 640, height: 480 },
+                room: RoomConfig {
+                    side: 40.0,
+                    subdivisions: 24,
+                    bump_amplitude: 0.5,
+                    bumps_per_face: 8,
+                    seed: 0,
+                },
+                intrinsics: Intrinsics {
+                    fx: 525.0,
+                    fy: 525.0,
+                    cx: 319.5,
+                    cy: 239.5,
+                    width: 640,
+                    height: 480,
+                },
                 view: ViewSphere::paper(2.8),
                 wall_margin: 0.5,
                 ..SceneConfig::default()
@@ -89,20 +107,43 @@ impl RoomSampleConfig {
 
     pub fn validate(&self) -> Result<(), DataError> {
         if self.scene.background != Background::Room {
-            return Err(DataError::Config { field: "scene.background", message: "room samples need background = room".into() });
+            return Err(DataError::Config {
+                field: "scene.background",
+                message: "room samples need background = room".into(),
+            });
         }
         if !(self.voxel_size.is_finite() && self.voxel_size > 0.0) {
-            return Err(DataError::Config { field: "voxel_size", message: format!("must be positive, got {}", self.voxel_size) });
+            return Err(DataError::Config {
+                field: "voxel_size",
+                message: format!("must be positive, got {}", self.voxel_size),
+            });
         }
         if self.model_points == 0 || self.max_attempts == 0 {
-            return Err(DataError::Config { field: "model_points/max_attempts", message: "must be ≥ 1".into() });
+            return Err(DataError::Config {
+                field: "model_points/max_attempts",
+                message: "must be ≥ 1".into(),
+            });
         }
         let (lo, hi) = self.distance;
         if !(lo.is_finite() && hi.is_finite() && lo > 0.0 && hi >= lo) {
-            return Err(DataError::Config { field: "distance", message: format!("{:?} is not an ordered range of positive values", self.distance) });
+            return Err(DataError::Config {
+                field: "distance",
+                message: format!(
+                    "{:?} is not an ordered range of positive values",
+                    self.distance
+                ),
+            });
         }
-        if !(self.distance_step.is_finite() && self.distance_step > 0.0) || (hi - lo) / self.distance_step > 1e5 {
-            return Err(DataError::Config { field: "distance_step", message: format!("must be positive and give at most 1e5 steps, got {}", self.distance_step) });
+        if !(self.distance_step.is_finite() && self.distance_step > 0.0)
+            || (hi - lo) / self.distance_step > 1e5
+        {
+            return Err(DataError::Config {
+                field: "distance_step",
+                message: format!(
+                    "must be positive and give at most 1e5 steps, got {}",
+                    self.distance_step
+                ),
+            });
         }
         self.scene.validate()?;
         Ok(())
@@ -145,7 +186,12 @@ impl RoomSample {
 
     /// The object's scene points.
     pub fn object_points(&self) -> Vec<Vec3> {
-        self.scene_points.iter().zip(&self.object_labels).filter(|(_, l)| **l).map(|(p, _)| *p).collect()
+        self.scene_points
+            .iter()
+            .zip(&self.object_labels)
+            .filter(|(_, l)| **l)
+            .map(|(p, _)| *p)
+            .collect()
     }
 }
 
@@ -160,12 +206,26 @@ pub fn mask_bbox(mask: &Mask) -> [i32; 4] {
         x1 = x1.max(x);
         y1 = y1.max(y);
     }
-    if x0 == usize::MAX { [-1; 4] } else { [x0 as i32, y0 as i32, (x1 - x0 + 1) as i32, (y1 - y0 + 1) as i32] }
+    if x0 == usize::MAX {
+        [-1; 4]
+    } else {
+        [
+            x0 as i32,
+            y0 as i32,
+            (x1 - x0 + 1) as i32,
+            (y1 - y0 + 1) as i32,
+        ]
+    }
 }
 
 /// The whole depth map back-projected and voxelised, with per-point object labels (a voxel is
 /// the object's when at least half of its pixels are under `mask`).
-pub fn voxelise_scene(intrinsics: &Intrinsics, depth: &DepthImage, mask: &Mask, voxel_size: f32) -> Result<(Vec<Vec3>, Vec<bool>), DataError> {
+pub fn voxelise_scene(
+    intrinsics: &Intrinsics,
+    depth: &DepthImage,
+    mask: &Mask,
+    voxel_size: f32,
+) -> Result<(Vec<Vec3>, Vec<bool>), DataError> {
     depth.check_size(intrinsics.width, intrinsics.height)?;
     mask.check_size(intrinsics.width, intrinsics.height)?;
     let w = intrinsics.width as usize;
@@ -173,15 +233,30 @@ pub fn voxelise_scene(intrinsics: &Intrinsics, depth: &DepthImage, mask: &Mask, 
     let mut colors = Vec::new();
     for (i, (&z, &m)) in depth.data.iter().zip(&mask.data).enumerate() {
         if z.is_finite() && z > 0.0 {
-            points.push(intrinsics.back_project((i % w) as f64, (i / w) as f64, z as f64).as_vec3());
+            points.push(
+                intrinsics
+                    .back_project((i % w) as f64, (i / w) as f64, z as f64)
+                    .as_vec3(),
+            );
             colors.push(if m { [255, 0, 0] } else { [0, 0, 0] });
         }
     }
     if points.is_empty() {
         return Ok((Vec::new(), Vec::new()));
     }
-    let cloud = voxel_downsample(&PointCloud { points, normals: None, colors: Some(colors) }, voxel_size)?;
-    let labels = cloud.colors.as_ref().map(|c| c.iter().map(|c| c[0] >= 128).collect()).unwrap_or_default();
+    let cloud = voxel_downsample(
+        &PointCloud {
+            points,
+            normals: None,
+            colors: Some(colors),
+        },
+        voxel_size,
+    )?;
+    let labels = cloud
+        .colors
+        .as_ref()
+        .map(|c| c.iter().map(|c| c[0] >= 128).collect())
+        .unwrap_or_default();
     Ok((cloud.points, labels))
 }
 
@@ -195,14 +270,27 @@ pub struct RoomSampleGenerator {
 
 impl std::fmt::Debug for RoomSampleGenerator {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("RoomSampleGenerator").field("corpus", &self.corpus).field("config", &self.config).field("seed", &self.seed).finish()
+        f.debug_struct("RoomSampleGenerator")
+            .field("corpus", &self.corpus)
+            .field("config", &self.config)
+            .field("seed", &self.seed)
+            .finish()
     }
 }
 
 impl RoomSampleGenerator {
-    pub fn new(corpus: Arc<Corpus>, config: RoomSampleConfig, seed: u64) -> Result<Self, DataError> {
+    pub fn new(
+        corpus: Arc<Corpus>,
+        config: RoomSampleConfig,
+        seed: u64,
+    ) -> Result<Self, DataError> {
         config.validate()?;
-        Ok(RoomSampleGenerator { corpus, config, seed, builders: Mutex::new(HashMap::new()) })
+        Ok(RoomSampleGenerator {
+            corpus,
+            config,
+            seed,
+            builders: Mutex::new(HashMap::new()),
+        })
     }
 
     /// The scene builder for distance step `step` (created on first use).
@@ -236,7 +324,11 @@ impl RoomSampleGenerator {
     }
 
     /// Sample `index`, rendered with `renderer`.
-    pub fn sample_with(&self, renderer: &mut dyn Renderer, index: u64) -> Result<RoomSample, DataError> {
+    pub fn sample_with(
+        &self,
+        renderer: &mut dyn Renderer,
+        index: u64,
+    ) -> Result<RoomSample, DataError> {
         let cfg = &self.config;
         let k = cfg.scene.intrinsics;
         let mut rng = sample_rng(self.seed, index);
@@ -251,14 +343,16 @@ impl RoomSampleGenerator {
             let mask_visib = rendering.mask(OBJECT_ID);
             let alone = Scene::single(object.mesh.clone(), built.object_pose, OBJECT_ID);
             let mask_all = renderer.render(&alone, &built.camera)?.mask(OBJECT_ID);
-            let (scene_points, object_labels) = voxelise_scene(&k, &rendering.depth, &mask_visib, cfg.voxel_size)?;
+            let (scene_points, object_labels) =
+                voxelise_scene(&k, &rendering.depth, &mask_visib, cfg.voxel_size)?;
             let object_count = object_labels.iter().filter(|&&l| l).count();
             last = object_count;
             if object_count < cfg.min_object_voxels.max(1) {
                 tracing::debug!(index, object = %object.id, object_count, "object barely visible; redrawing");
                 continue;
             }
-            let xi = random_subsample_indices(object.model_points.len(), cfg.model_points, &mut rng)?;
+            let xi =
+                random_subsample_indices(object.model_points.len(), cfg.model_points, &mut rng)?;
             let model_points = xi.iter().map(|&i| object.model_points[i]).collect();
             return Ok(RoomSample {
                 index,
@@ -280,7 +374,10 @@ impl RoomSampleGenerator {
         }
         Err(DataError::Sample {
             index,
-            message: format!("the object covered fewer than {} voxels in {} attempts (last: {last})", cfg.min_object_voxels, cfg.max_attempts),
+            message: format!(
+                "the object covered fewer than {} voxels in {} attempts (last: {last})",
+                cfg.min_object_voxels, cfg.max_attempts
+            ),
         })
     }
 }

@@ -8,8 +8,13 @@
 use std::sync::Arc;
 
 use glam::Vec3;
-use ic_geometry::{DepthImage, Intrinsics, Mask, Normalisation, Pose, ViewSphere, Viewpoint, random_subsample_indices, voxel_downsample_points};
-use ic_render::{Background, CpuRenderer, ObjectRotation, OBJECT_ID, Renderer, SceneBuilder, SceneConfig};
+use ic_geometry::{
+    DepthImage, Intrinsics, Mask, Normalisation, Pose, ViewSphere, Viewpoint,
+    random_subsample_indices, voxel_downsample_points,
+};
+use ic_render::{
+    Background, CpuRenderer, OBJECT_ID, ObjectRotation, Renderer, SceneBuilder, SceneConfig,
+};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
@@ -56,7 +61,14 @@ pub struct ObjectSampleConfig {
 impl Default for ObjectSampleConfig {
     fn default() -> Self {
         ObjectSampleConfig {
-            intrinsics: Intrinsics { fx: 131.25, fy: 131.25, cx: 79.5, cy: 59.5, width: 160, height: 120 },
+            intrinsics: Intrinsics {
+                fx: 131.25,
+                fy: 131.25,
+                cx: 79.5,
+                cy: 59.5,
+                width: 160,
+                height: 120,
+            },
             view: ViewSphere::paper(2.8),
             rotation: ObjectRotation::Canonical,
             voxel_size: PAPER_VOXEL_SIZE,
@@ -75,13 +87,19 @@ impl ObjectSampleConfig {
     pub fn validate(&self) -> Result<(), DataError> {
         let bad = |field: &'static str, message: String| Err(DataError::Config { field, message });
         if !(self.voxel_size.is_finite() && self.voxel_size > 0.0) {
-            return bad("voxel_size", format!("must be positive, got {}", self.voxel_size));
+            return bad(
+                "voxel_size",
+                format!("must be positive, got {}", self.voxel_size),
+            );
         }
         if self.model_points == 0 || self.observed_points == 0 {
             return bad("model_points/observed_points", "must be ≥ 1".into());
         }
         if !(self.match_threshold.is_finite() && self.match_threshold >= 0.0) {
-            return bad("match_threshold", format!("must be ≥ 0, got {}", self.match_threshold));
+            return bad(
+                "match_threshold",
+                format!("must be ≥ 0, got {}", self.match_threshold),
+            );
         }
         if self.max_attempts == 0 {
             return bad("max_attempts", "must be ≥ 1".into());
@@ -90,7 +108,13 @@ impl ObjectSampleConfig {
     }
 
     fn scene_config(&self) -> SceneConfig {
-        SceneConfig { background: Background::None, intrinsics: self.intrinsics, view: self.view, rotation: self.rotation, ..SceneConfig::object_only() }
+        SceneConfig {
+            background: Background::None,
+            intrinsics: self.intrinsics,
+            view: self.view,
+            rotation: self.rotation,
+            ..SceneConfig::object_only()
+        }
     }
 }
 
@@ -137,15 +161,28 @@ pub struct ObjectSampleGenerator {
 
 impl std::fmt::Debug for ObjectSampleGenerator {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("ObjectSampleGenerator").field("corpus", &self.corpus).field("config", &self.config).field("seed", &self.seed).finish()
+        f.debug_struct("ObjectSampleGenerator")
+            .field("corpus", &self.corpus)
+            .field("config", &self.config)
+            .field("seed", &self.seed)
+            .finish()
     }
 }
 
 impl ObjectSampleGenerator {
-    pub fn new(corpus: Arc<Corpus>, config: ObjectSampleConfig, seed: u64) -> Result<Self, DataError> {
+    pub fn new(
+        corpus: Arc<Corpus>,
+        config: ObjectSampleConfig,
+        seed: u64,
+    ) -> Result<Self, DataError> {
         config.validate()?;
         let builder = SceneBuilder::new(config.scene_config())?;
-        Ok(ObjectSampleGenerator { corpus, config, seed, builder })
+        Ok(ObjectSampleGenerator {
+            corpus,
+            config,
+            seed,
+            builder,
+        })
     }
 
     pub fn config(&self) -> &ObjectSampleConfig {
@@ -167,7 +204,11 @@ impl ObjectSampleGenerator {
 
     /// Sample `index`, rendered with `renderer` (any backend gives the same sample up to the
     /// backends' depth agreement).
-    pub fn sample_with(&self, renderer: &mut dyn Renderer, index: u64) -> Result<ObjectSample, DataError> {
+    pub fn sample_with(
+        &self,
+        renderer: &mut dyn Renderer,
+        index: u64,
+    ) -> Result<ObjectSample, DataError> {
         let cfg = &self.config;
         let mut rng = sample_rng(self.seed, index);
         let mut last_count = 0;
@@ -177,8 +218,14 @@ impl ObjectSampleGenerator {
             let built = self.builder.build(&object.mesh, scene_seed)?;
             let rendering = renderer.render(&built.scene, &built.camera)?;
             let mask = rendering.mask(OBJECT_ID);
-            let pixels = cfg.intrinsics.back_project_depth(&rendering.depth, Some(&mask))?;
-            let voxels = if pixels.is_empty() { Vec::new() } else { voxel_downsample_points(&pixels, cfg.voxel_size)? };
+            let pixels = cfg
+                .intrinsics
+                .back_project_depth(&rendering.depth, Some(&mask))?;
+            let voxels = if pixels.is_empty() {
+                Vec::new()
+            } else {
+                voxel_downsample_points(&pixels, cfg.voxel_size)?
+            };
             last_count = voxels.len();
             if voxels.len() < cfg.min_observed_voxels.max(1) {
                 tracing::debug!(index, object = %object.id, voxels = voxels.len(), "too few observed voxels; redrawing");
@@ -186,11 +233,17 @@ impl ObjectSampleGenerator {
             }
             let yi = random_subsample_indices(voxels.len(), cfg.observed_points, &mut rng)?;
             let observed_points: Vec<Vec3> = yi.iter().map(|&i| voxels[i]).collect();
-            let xi = random_subsample_indices(object.model_points.len(), cfg.model_points, &mut rng)?;
+            let xi =
+                random_subsample_indices(object.model_points.len(), cfg.model_points, &mut rng)?;
             let model_points: Vec<Vec3> = xi.iter().map(|&i| object.model_points[i]).collect();
             let pose = built.object_to_camera();
-            let assignment = Assignment::from_pose(&model_points, &observed_points, &pose, cfg.match_threshold)?;
-            let (depth, mask) = if cfg.keep_images { (Some(rendering.depth), Some(mask)) } else { (None, None) };
+            let assignment =
+                Assignment::from_pose(&model_points, &observed_points, &pose, cfg.match_threshold)?;
+            let (depth, mask) = if cfg.keep_images {
+                (Some(rendering.depth), Some(mask))
+            } else {
+                (None, None)
+            };
             return Ok(ObjectSample {
                 index,
                 object_id: object.id.clone(),

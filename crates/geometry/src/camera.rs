@@ -25,8 +25,22 @@ pub struct Intrinsics {
 impl Intrinsics {
     /// Checked constructor: focal lengths positive and finite, image non-empty, principal point
     /// finite.
-    pub fn new(fx: f64, fy: f64, cx: f64, cy: f64, width: u32, height: u32) -> Result<Self, GeometryError> {
-        let k = Intrinsics { fx, fy, cx, cy, width, height };
+    pub fn new(
+        fx: f64,
+        fy: f64,
+        cx: f64,
+        cy: f64,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, GeometryError> {
+        let k = Intrinsics {
+            fx,
+            fy,
+            cx,
+            cy,
+            width,
+            height,
+        };
         k.validate()?;
         Ok(k)
     }
@@ -35,10 +49,19 @@ impl Intrinsics {
     /// vertical field of view (degrees).
     pub fn from_fov_y(width: u32, height: u32, fov_y_deg: f64) -> Result<Self, GeometryError> {
         if !(fov_y_deg > 0.0 && fov_y_deg < 180.0) {
-            return Err(GeometryError::InvalidIntrinsics(format!("vertical field of view {fov_y_deg}° is not in (0°, 180°)")));
+            return Err(GeometryError::InvalidIntrinsics(format!(
+                "vertical field of view {fov_y_deg}° is not in (0°, 180°)"
+            )));
         }
         let f = 0.5 * height as f64 / (0.5 * fov_y_deg.to_radians()).tan();
-        Self::new(f, f, (width as f64 - 1.0) / 2.0, (height as f64 - 1.0) / 2.0, width, height)
+        Self::new(
+            f,
+            f,
+            (width as f64 - 1.0) / 2.0,
+            (height as f64 - 1.0) / 2.0,
+            width,
+            height,
+        )
     }
 
     /// Checks the invariants of [`Intrinsics::new`].
@@ -50,17 +73,27 @@ impl Intrinsics {
             )));
         }
         if !(self.cx.is_finite() && self.cy.is_finite()) {
-            return Err(GeometryError::InvalidIntrinsics(format!("principal point ({}, {}) is not finite", self.cx, self.cy)));
+            return Err(GeometryError::InvalidIntrinsics(format!(
+                "principal point ({}, {}) is not finite",
+                self.cx, self.cy
+            )));
         }
         if self.width == 0 || self.height == 0 {
-            return Err(GeometryError::InvalidIntrinsics(format!("image size {}×{} is empty", self.width, self.height)));
+            return Err(GeometryError::InvalidIntrinsics(format!(
+                "image size {}×{} is empty",
+                self.width, self.height
+            )));
         }
         Ok(())
     }
 
     /// The 3×3 matrix K, row-major (`cam_K` in BOP files).
     pub fn k_row_major(&self) -> [[f64; 3]; 3] {
-        [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]
+        [
+            [self.fx, 0.0, self.cx],
+            [0.0, self.fy, self.cy],
+            [0.0, 0.0, 1.0],
+        ]
     }
 
     /// Projects a camera-frame point to continuous pixel coordinates `(u, v)`; `None` when the
@@ -73,7 +106,8 @@ impl Intrinsics {
     pub fn project_to_pixel(&self, p: DVec3) -> Option<(u32, u32)> {
         let (u, v) = self.project(p)?;
         let (u, v) = (u.round(), v.round());
-        (u >= 0.0 && v >= 0.0 && u < self.width as f64 && v < self.height as f64).then_some((u as u32, v as u32))
+        (u >= 0.0 && v >= 0.0 && u < self.width as f64 && v < self.height as f64)
+            .then_some((u as u32, v as u32))
     }
 
     /// The camera-frame point at pixel `(u, v)` with depth `z` (camera-frame z, not ray length).
@@ -84,7 +118,11 @@ impl Intrinsics {
     /// Back-projects every pixel with a valid depth (finite, > 0), optionally only under
     /// `mask`, to camera-frame points, in row-major pixel order. Fails when the depth map or
     /// mask size differs from the intrinsics.
-    pub fn back_project_depth(&self, depth: &DepthImage, mask: Option<&Mask>) -> Result<Vec<Vec3>, GeometryError> {
+    pub fn back_project_depth(
+        &self,
+        depth: &DepthImage,
+        mask: Option<&Mask>,
+    ) -> Result<Vec<Vec3>, GeometryError> {
         depth.check_size(self.width, self.height)?;
         if let Some(m) = mask {
             m.check_size(self.width, self.height)?;
@@ -121,14 +159,19 @@ impl Intrinsics {
 /// roughly to the top of the image (camera −y). Fails when `eye == target` or `up` is parallel
 /// to the viewing direction.
 pub fn look_at(eye: DVec3, target: DVec3, up: DVec3) -> Result<Pose, GeometryError> {
-    let z = (target - eye).try_normalize().ok_or_else(|| GeometryError::InvalidParameter {
-        name: "look_at",
-        message: "eye and target coincide".into(),
-    })?;
-    let x = z.cross(up).try_normalize().ok_or_else(|| GeometryError::InvalidParameter {
-        name: "look_at",
-        message: "up is parallel to the viewing direction".into(),
-    })?;
+    let z = (target - eye)
+        .try_normalize()
+        .ok_or_else(|| GeometryError::InvalidParameter {
+            name: "look_at",
+            message: "eye and target coincide".into(),
+        })?;
+    let x = z
+        .cross(up)
+        .try_normalize()
+        .ok_or_else(|| GeometryError::InvalidParameter {
+            name: "look_at",
+            message: "up is parallel to the viewing direction".into(),
+        })?;
     let y = z.cross(x);
     // Rows of the world→camera rotation are the camera axes expressed in the world.
     let rotation = DMat3::from_cols(x, y, z).transpose();
@@ -149,7 +192,10 @@ pub struct Viewpoint {
 impl Viewpoint {
     /// The camera position relative to the target.
     pub fn offset(&self) -> DVec3 {
-        let (e, a) = (self.elevation_deg.to_radians(), self.azimuth_deg.to_radians());
+        let (e, a) = (
+            self.elevation_deg.to_radians(),
+            self.azimuth_deg.to_radians(),
+        );
         self.distance * DVec3::new(e.cos() * a.cos(), e.cos() * a.sin(), e.sin())
     }
 
@@ -173,12 +219,22 @@ pub struct ViewSphere {
 impl ViewSphere {
     /// The paper's ranges: elevation [15°, 75°], azimuth [0°, 89°], at `distance`.
     pub fn paper(distance: f64) -> Self {
-        ViewSphere { elevation_deg: (15.0, 75.0), azimuth_deg: (0.0, 89.0), distance }
+        ViewSphere {
+            elevation_deg: (15.0, 75.0),
+            azimuth_deg: (0.0, 89.0),
+            distance,
+        }
     }
 
     /// Draws a viewpoint.
     pub fn sample<R: Rng + ?Sized>(&self, rng: &mut R) -> Viewpoint {
-        let uni = |rng: &mut R, (lo, hi): (f64, f64)| if hi > lo { rng.random_range(lo..=hi) } else { lo };
+        let uni = |rng: &mut R, (lo, hi): (f64, f64)| {
+            if hi > lo {
+                rng.random_range(lo..=hi)
+            } else {
+                lo
+            }
+        };
         Viewpoint {
             elevation_deg: uni(rng, self.elevation_deg),
             azimuth_deg: uni(rng, self.azimuth_deg),
@@ -213,11 +269,17 @@ mod tests {
         for _ in 0..200 {
             let v = vs.sample(&mut a);
             assert_eq!(v, vs.sample(&mut b));
-            assert!((15.0..=75.0).contains(&v.elevation_deg) && (0.0..=89.0).contains(&v.azimuth_deg));
+            assert!(
+                (15.0..=75.0).contains(&v.elevation_deg) && (0.0..=89.0).contains(&v.azimuth_deg)
+            );
             let p = v.camera_pose(DVec3::ZERO).unwrap();
             assert!((p.apply(DVec3::ZERO).z - 2.5).abs() < 1e-9);
         }
-        let top = Viewpoint { elevation_deg: 90.0, azimuth_deg: 0.0, distance: 1.0 };
+        let top = Viewpoint {
+            elevation_deg: 90.0,
+            azimuth_deg: 0.0,
+            distance: 1.0,
+        };
         assert!(top.camera_pose(DVec3::ZERO).is_ok());
     }
 
@@ -240,6 +302,9 @@ mod tests {
         let masked = k.back_project_depth(&depth, Some(&mask)).unwrap();
         assert_eq!(masked, vec![Vec3::new(0.0, 0.01, 2.0)]);
         let wrong = DepthImage::filled(2, 2, 1.0);
-        assert!(matches!(k.back_project_depth(&wrong, None), Err(GeometryError::ImageSizeMismatch { .. })));
+        assert!(matches!(
+            k.back_project_depth(&wrong, None),
+            Err(GeometryError::ImageSizeMismatch { .. })
+        ));
     }
 }

@@ -15,7 +15,11 @@ pub struct PointCloud {
 impl PointCloud {
     /// A cloud of bare points.
     pub fn from_points(points: Vec<Vec3>) -> Self {
-        PointCloud { points, normals: None, colors: None }
+        PointCloud {
+            points,
+            normals: None,
+            colors: None,
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -31,12 +35,20 @@ impl PointCloud {
         let n = self.points.len();
         if let Some(normals) = &self.normals {
             if normals.len() != n {
-                return Err(GeometryError::LengthMismatch { what: "normals vs points", left: normals.len(), right: n });
+                return Err(GeometryError::LengthMismatch {
+                    what: "normals vs points",
+                    left: normals.len(),
+                    right: n,
+                });
             }
         }
         if let Some(colors) = &self.colors {
             if colors.len() != n {
-                return Err(GeometryError::LengthMismatch { what: "colours vs points", left: colors.len(), right: n });
+                return Err(GeometryError::LengthMismatch {
+                    what: "colours vs points",
+                    left: colors.len(),
+                    right: n,
+                });
             }
         }
         check_finite("point cloud", &self.points)
@@ -46,8 +58,14 @@ impl PointCloud {
     pub fn select(&self, indices: &[usize]) -> PointCloud {
         PointCloud {
             points: indices.iter().map(|&i| self.points[i]).collect(),
-            normals: self.normals.as_ref().map(|n| indices.iter().map(|&i| n[i]).collect()),
-            colors: self.colors.as_ref().map(|c| indices.iter().map(|&i| c[i]).collect()),
+            normals: self
+                .normals
+                .as_ref()
+                .map(|n| indices.iter().map(|&i| n[i]).collect()),
+            colors: self
+                .colors
+                .as_ref()
+                .map(|c| indices.iter().map(|&i| c[i]).collect()),
         }
     }
 
@@ -82,7 +100,11 @@ pub(crate) fn check_finite(what: &'static str, points: &[Vec3]) -> Result<(), Ge
 /// The integer voxel of a point on the grid of cell size `voxel_size` anchored at the origin:
 /// voxel `(i, j, k)` covers `[i·s, (i+1)·s) × [j·s, (j+1)·s) × [k·s, (k+1)·s)`.
 pub fn voxel_of(p: Vec3, voxel_size: f32) -> [i64; 3] {
-    [(p.x / voxel_size).floor() as i64, (p.y / voxel_size).floor() as i64, (p.z / voxel_size).floor() as i64]
+    [
+        (p.x / voxel_size).floor() as i64,
+        (p.y / voxel_size).floor() as i64,
+        (p.z / voxel_size).floor() as i64,
+    ]
 }
 
 /// Voxel down-sampling: one point per occupied voxel, the centroid of the input points in it
@@ -93,11 +115,18 @@ pub fn voxel_of(p: Vec3, voxel_size: f32) -> [i64; 3] {
 /// non-positive or non-finite voxel size, or non-finite points.
 pub fn voxel_downsample(cloud: &PointCloud, voxel_size: f32) -> Result<PointCloud, GeometryError> {
     if !(voxel_size > 0.0 && voxel_size.is_finite()) {
-        return Err(GeometryError::InvalidParameter { name: "voxel_size", message: format!("{voxel_size} is not a positive finite size") });
+        return Err(GeometryError::InvalidParameter {
+            name: "voxel_size",
+            message: format!("{voxel_size} is not a positive finite size"),
+        });
     }
     cloud.validate()?;
-    let mut order: Vec<([i64; 3], u32)> =
-        cloud.points.iter().enumerate().map(|(i, &p)| (voxel_of(p, voxel_size), i as u32)).collect();
+    let mut order: Vec<([i64; 3], u32)> = cloud
+        .points
+        .iter()
+        .enumerate()
+        .map(|(i, &p)| (voxel_of(p, voxel_size), i as u32))
+        .collect();
     order.sort_unstable();
     let mut out = PointCloud {
         points: Vec::new(),
@@ -112,7 +141,8 @@ pub fn voxel_downsample(cloud: &PointCloud, voxel_size: f32) -> Result<PointClou
             lo = lo.min(p);
             hi = hi.max(p);
         }
-        out.points.push((sum / group.len() as f64).as_vec3().clamp(lo, hi));
+        out.points
+            .push((sum / group.len() as f64).as_vec3().clamp(lo, hi));
         if let (Some(src), Some(dst)) = (&cloud.normals, out.normals.as_mut()) {
             let n: Vec3 = group.iter().map(|&(_, i)| src[i as usize]).sum();
             dst.push(n.normalize_or_zero());
@@ -132,7 +162,10 @@ pub fn voxel_downsample(cloud: &PointCloud, voxel_size: f32) -> Result<PointClou
 }
 
 /// Voxel down-sampling of bare points (see [`voxel_downsample`]).
-pub fn voxel_downsample_points(points: &[Vec3], voxel_size: f32) -> Result<Vec<Vec3>, GeometryError> {
+pub fn voxel_downsample_points(
+    points: &[Vec3],
+    voxel_size: f32,
+) -> Result<Vec<Vec3>, GeometryError> {
     // Building a PointCloud moves nothing but the Vec; callers with a cloud use the other form.
     Ok(voxel_downsample(&PointCloud::from_points(points.to_vec()), voxel_size)?.points)
 }
@@ -146,13 +179,19 @@ pub fn voxel_downsample_points(points: &[Vec3], voxel_size: f32) -> Result<Vec<V
 ///   shuffled — the network still sees exactly `count` points and duplicates carry no new
 ///   information.
 /// - `len == 0` and `count > 0`: an error.
-pub fn random_subsample_indices<R: rand::Rng + ?Sized>(len: usize, count: usize, rng: &mut R) -> Result<Vec<usize>, GeometryError> {
+pub fn random_subsample_indices<R: rand::Rng + ?Sized>(
+    len: usize,
+    count: usize,
+    rng: &mut R,
+) -> Result<Vec<usize>, GeometryError> {
     use rand::seq::SliceRandom;
     if count == 0 {
         return Ok(Vec::new());
     }
     if len == 0 {
-        return Err(GeometryError::Empty { what: "points to subsample" });
+        return Err(GeometryError::Empty {
+            what: "points to subsample",
+        });
     }
     let mut idx: Vec<usize> = (0..len).collect();
     if len >= count {
@@ -165,14 +204,22 @@ pub fn random_subsample_indices<R: rand::Rng + ?Sized>(len: usize, count: usize,
 }
 
 /// Exactly `count` points of `cloud` drawn at random; see [`random_subsample_indices`].
-pub fn random_subsample<R: rand::Rng + ?Sized>(cloud: &PointCloud, count: usize, rng: &mut R) -> Result<PointCloud, GeometryError> {
+pub fn random_subsample<R: rand::Rng + ?Sized>(
+    cloud: &PointCloud,
+    count: usize,
+    rng: &mut R,
+) -> Result<PointCloud, GeometryError> {
     Ok(cloud.select(&random_subsample_indices(cloud.len(), count, rng)?))
 }
 
 /// Unit normals estimated by PCA over each point's `k` nearest neighbours (the eigenvector of
 /// the smallest covariance eigenvalue), oriented towards `viewpoint` (e.g. the camera origin
 /// for back-projected depth). Points with fewer than 3 neighbours get a zero normal.
-pub fn estimate_normals(points: &[Vec3], k: usize, viewpoint: Vec3) -> Result<Vec<Vec3>, GeometryError> {
+pub fn estimate_normals(
+    points: &[Vec3],
+    k: usize,
+    viewpoint: Vec3,
+) -> Result<Vec<Vec3>, GeometryError> {
     use rayon::prelude::*;
     let tree = crate::KdTree::new(points)?;
     Ok(points
@@ -182,7 +229,11 @@ pub fn estimate_normals(points: &[Vec3], k: usize, viewpoint: Vec3) -> Result<Ve
             if nb.len() < 3 {
                 return Vec3::ZERO;
             }
-            let mean = nb.iter().map(|n| points[n.index].as_dvec3()).sum::<glam::DVec3>() / nb.len() as f64;
+            let mean = nb
+                .iter()
+                .map(|n| points[n.index].as_dvec3())
+                .sum::<glam::DVec3>()
+                / nb.len() as f64;
             let mut c = [[0.0f64; 3]; 3];
             for n in &nb {
                 let d = (points[n.index].as_dvec3() - mean).to_array();
@@ -193,7 +244,11 @@ pub fn estimate_normals(points: &[Vec3], k: usize, viewpoint: Vec3) -> Result<Ve
                 }
             }
             let normal = smallest_eigenvector(&c);
-            let flip = if normal.dot((viewpoint - p).as_dvec3()) < 0.0 { -1.0 } else { 1.0 };
+            let flip = if normal.dot((viewpoint - p).as_dvec3()) < 0.0 {
+                -1.0
+            } else {
+                1.0
+            };
             (normal * flip).as_vec3()
         })
         .collect())
@@ -240,15 +295,24 @@ mod tests {
     #[test]
     fn voxel_downsample_is_independent_of_input_order_and_averages_attributes() {
         let cloud = PointCloud {
-            points: vec![Vec3::new(0.1, 0.1, 0.1), Vec3::new(0.3, 0.3, 0.3), Vec3::new(1.5, 0.0, 0.0)],
+            points: vec![
+                Vec3::new(0.1, 0.1, 0.1),
+                Vec3::new(0.3, 0.3, 0.3),
+                Vec3::new(1.5, 0.0, 0.0),
+            ],
             normals: Some(vec![Vec3::X, Vec3::Y, Vec3::Z]),
             colors: Some(vec![[0, 0, 0], [255, 100, 2], [9, 9, 9]]),
         };
         let a = voxel_downsample(&cloud, 1.0).unwrap();
         let b = voxel_downsample(&cloud.select(&[2, 1, 0]), 1.0).unwrap();
         assert_eq!(a, b);
-        assert_eq!(a.points, vec![Vec3::new(0.2, 0.2, 0.2), Vec3::new(1.5, 0.0, 0.0)]);
-        assert!(a.normals.as_ref().unwrap()[0].abs_diff_eq(Vec3::new(1.0, 1.0, 0.0).normalize(), 1e-6));
+        assert_eq!(
+            a.points,
+            vec![Vec3::new(0.2, 0.2, 0.2), Vec3::new(1.5, 0.0, 0.0)]
+        );
+        assert!(
+            a.normals.as_ref().unwrap()[0].abs_diff_eq(Vec3::new(1.0, 1.0, 0.0).normalize(), 1e-6)
+        );
         assert_eq!(a.colors.as_ref().unwrap()[0], [128, 50, 1]);
         assert!(voxel_downsample(&cloud, 0.0).is_err());
         assert!(voxel_downsample(&cloud, f32::NAN).is_err());
@@ -259,7 +323,11 @@ mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
         let idx = random_subsample_indices(100, 40, &mut rng).unwrap();
         assert_eq!(idx.len(), 40);
-        assert_eq!(idx.iter().collect::<std::collections::HashSet<_>>().len(), 40, "without replacement");
+        assert_eq!(
+            idx.iter().collect::<std::collections::HashSet<_>>().len(),
+            40,
+            "without replacement"
+        );
         let short = random_subsample_indices(5, 12, &mut rng).unwrap();
         assert_eq!(short.len(), 12);
         for i in 0..5 {
@@ -269,12 +337,17 @@ mod tests {
         assert!(random_subsample_indices(0, 0, &mut rng).unwrap().is_empty());
         let mut a = rand_chacha::ChaCha8Rng::seed_from_u64(9);
         let mut b = rand_chacha::ChaCha8Rng::seed_from_u64(9);
-        assert_eq!(random_subsample_indices(1000, 768, &mut a).unwrap(), random_subsample_indices(1000, 768, &mut b).unwrap());
+        assert_eq!(
+            random_subsample_indices(1000, 768, &mut a).unwrap(),
+            random_subsample_indices(1000, 768, &mut b).unwrap()
+        );
     }
 
     #[test]
     fn normals_of_a_plane_point_to_the_viewpoint() {
-        let points: Vec<Vec3> = (0..400).map(|i| Vec3::new((i % 20) as f32 * 0.1, (i / 20) as f32 * 0.1, 2.0)).collect();
+        let points: Vec<Vec3> = (0..400)
+            .map(|i| Vec3::new((i % 20) as f32 * 0.1, (i / 20) as f32 * 0.1, 2.0))
+            .collect();
         let normals = estimate_normals(&points, 10, Vec3::ZERO).unwrap();
         for n in normals {
             assert!(n.abs_diff_eq(Vec3::new(0.0, 0.0, -1.0), 1e-5), "{n}");

@@ -13,7 +13,11 @@ pub enum MeshDataError {
     #[error("vertex {vertex} has a non-finite coordinate ({value})")]
     NonFiniteVertex { vertex: usize, value: f32 },
     #[error("face {face} refers to vertex {index}, but the mesh has {vertex_count} vertices")]
-    IndexOutOfRange { face: usize, index: u64, vertex_count: usize },
+    IndexOutOfRange {
+        face: usize,
+        index: u64,
+        vertex_count: usize,
+    },
     #[error("the mesh has zero surface area (all faces are degenerate)")]
     ZeroArea,
 }
@@ -29,7 +33,11 @@ pub enum MeshError {
     },
     /// A syntax error at a known line (1-based).
     #[error("{path}:{line}: {message}")]
-    Parse { path: PathBuf, line: usize, message: String },
+    Parse {
+        path: PathBuf,
+        line: usize,
+        message: String,
+    },
     /// A structural error without a line (binary formats, glTF accessors, …).
     #[error("{path}: {message}")]
     Format { path: PathBuf, message: String },
@@ -79,7 +87,11 @@ pub enum GeometryError {
     #[error("weight {index} is negative or not finite ({value})")]
     InvalidWeight { index: usize, value: f64 },
     #[error("{what}: lengths differ ({left} vs {right})")]
-    LengthMismatch { what: &'static str, left: usize, right: usize },
+    LengthMismatch {
+        what: &'static str,
+        left: usize,
+        right: usize,
+    },
     #[error("{what}: point {index} has a non-finite coordinate")]
     NonFinitePoint { what: &'static str, index: usize },
     #[error("{what} is empty")]
@@ -87,7 +99,12 @@ pub enum GeometryError {
     #[error("invalid camera intrinsics: {0}")]
     InvalidIntrinsics(String),
     #[error("image is {got_width}×{got_height}, expected {width}×{height}")]
-    ImageSizeMismatch { width: u32, height: u32, got_width: u32, got_height: u32 },
+    ImageSizeMismatch {
+        width: u32,
+        height: u32,
+        got_width: u32,
+        got_height: u32,
+    },
     #[error("invalid parameter {name}: {message}")]
     InvalidParameter { name: &'static str, message: String },
     #[error("invalid rotation: {0}")]

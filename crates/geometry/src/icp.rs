@@ -74,17 +74,32 @@ impl<'a> IcpTarget<'a> {
     pub fn new(points: &'a [Vec3], normals: Option<&'a [Vec3]>) -> Result<Self, GeometryError> {
         if let Some(n) = normals {
             if n.len() != points.len() {
-                return Err(GeometryError::LengthMismatch { what: "target normals vs points", left: n.len(), right: points.len() });
+                return Err(GeometryError::LengthMismatch {
+                    what: "target normals vs points",
+                    left: n.len(),
+                    right: points.len(),
+                });
             }
             check_finite("target normals", n)?;
         }
-        Ok(IcpTarget { points, normals, tree: KdTree::new(points)? })
+        Ok(IcpTarget {
+            points,
+            normals,
+            tree: KdTree::new(points)?,
+        })
     }
 
     /// Refines `initial` (source → target). See the module documentation.
-    pub fn register(&self, source: &[Vec3], initial: &Pose, options: &IcpOptions) -> Result<IcpResult, GeometryError> {
+    pub fn register(
+        &self,
+        source: &[Vec3],
+        initial: &Pose,
+        options: &IcpOptions,
+    ) -> Result<IcpResult, GeometryError> {
         if source.is_empty() {
-            return Err(GeometryError::Empty { what: "ICP source points" });
+            return Err(GeometryError::Empty {
+                what: "ICP source points",
+            });
         }
         check_finite("ICP source points", source)?;
         if !(options.max_correspondence_distance > 0.0) {
@@ -113,14 +128,23 @@ impl<'a> IcpTarget<'a> {
             }
             let step = match options.method {
                 IcpMethod::PointToPoint => {
-                    let (src, dst): (Vec<Vec3>, Vec<Vec3>) =
-                        eval.pairs.iter().map(|&(s, t)| (pose.apply_f32(source[s]), self.points[t])).unzip();
+                    let (src, dst): (Vec<Vec3>, Vec<Vec3>) = eval
+                        .pairs
+                        .iter()
+                        .map(|&(s, t)| (pose.apply_f32(source[s]), self.points[t]))
+                        .unzip();
                     match procrustes(&src, &dst, None) {
                         Ok(p) => p,
                         Err(_) => break,
                     }
                 }
-                IcpMethod::PointToPlane => match point_to_plane_step(source, self.points, normals.unwrap_or_default(), &eval.pairs, &pose) {
+                IcpMethod::PointToPlane => match point_to_plane_step(
+                    source,
+                    self.points,
+                    normals.unwrap_or_default(),
+                    &eval.pairs,
+                    &pose,
+                ) {
                     Some(p) => p,
                     None => break,
                 },
@@ -162,8 +186,16 @@ impl<'a> IcpTarget<'a> {
             pairs.push((s, t));
             sq += (d as f64) * (d as f64);
         }
-        let rmse = if pairs.is_empty() { 0.0 } else { (sq / pairs.len() as f64).sqrt() };
-        Correspondences { fitness: pairs.len() as f64 / source.len() as f64, rmse, pairs }
+        let rmse = if pairs.is_empty() {
+            0.0
+        } else {
+            (sq / pairs.len() as f64).sqrt()
+        };
+        Correspondences {
+            fitness: pairs.len() as f64 / source.len() as f64,
+            rmse,
+            pairs,
+        }
     }
 }
 
@@ -175,7 +207,13 @@ struct Correspondences {
 
 /// One Gauss–Newton step of point-to-plane ICP: the small motion `(ω, v)` minimising
 /// `Σ ((p + ω×p + v − q)·n)²` over the current correspondences, returned as a pose.
-fn point_to_plane_step(source: &[Vec3], target: &[Vec3], normals: &[Vec3], pairs: &[(usize, usize)], pose: &Pose) -> Option<Pose> {
+fn point_to_plane_step(
+    source: &[Vec3],
+    target: &[Vec3],
+    normals: &[Vec3],
+    pairs: &[(usize, usize)],
+    pose: &Pose,
+) -> Option<Pose> {
     let mut ata = [[0.0f64; 6]; 6];
     let mut atb = [0.0f64; 6];
     for &(s, t) in pairs {
@@ -244,10 +282,15 @@ mod tests {
         let mut pts = Vec::new();
         let mut nrm = Vec::new();
         while pts.len() < n {
-            let d = DVec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+            let d = DVec3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            );
             let Some(d) = d.try_normalize() else { continue };
             let radii = DVec3::new(1.0, 0.6, 0.35);
-            let bump = 1.0 + 0.3 * (-(d - DVec3::new(0.6, 0.6, 0.5).normalize()).length_squared() * 6.0).exp();
+            let bump = 1.0
+                + 0.3 * (-(d - DVec3::new(0.6, 0.6, 0.5).normalize()).length_squared() * 6.0).exp();
             let p = d * radii * bump;
             pts.push(p.as_vec3());
             nrm.push((p / (radii * radii)).normalize().as_vec3());
@@ -256,7 +299,11 @@ mod tests {
     }
 
     fn perturbation(deg: f64, trans: f64) -> Pose {
-        Pose::from_axis_angle(DVec3::new(0.3, -0.5, 0.8), deg.to_radians(), DVec3::new(1.0, 0.5, -0.7).normalize() * trans)
+        Pose::from_axis_angle(
+            DVec3::new(0.3, -0.5, 0.8),
+            deg.to_radians(),
+            DVec3::new(1.0, 0.5, -0.7).normalize() * trans,
+        )
     }
 
     #[test]
@@ -265,11 +312,19 @@ mod tests {
         let (source, _) = surface(1024, 2);
         let truth = Pose::IDENTITY;
         let init = perturbation(10.0, 0.05);
-        let opts = IcpOptions { max_correspondence_distance: 0.3, max_iterations: 100, ..Default::default() };
+        let opts = IcpOptions {
+            max_correspondence_distance: 0.3,
+            max_iterations: 100,
+            ..Default::default()
+        };
         let r = icp(&source, &target, None, &init, &opts).unwrap();
         let deg = r.pose.rotation_angle_to(&truth).to_degrees();
         assert!(deg < 1.0, "rotation error {deg}°");
-        assert!(r.pose.translation.length() < 0.01, "translation error {}", r.pose.translation.length());
+        assert!(
+            r.pose.translation.length() < 0.01,
+            "translation error {}",
+            r.pose.translation.length()
+        );
         assert!(r.fitness > 0.99 && r.inlier_rmse < 0.03, "{r:?}");
     }
 
@@ -279,25 +334,53 @@ mod tests {
         let (source, _) = surface(1024, 4);
         let init = perturbation(10.0, 0.05);
         let target_index = IcpTarget::new(&target, Some(&normals)).unwrap();
-        let opts = IcpOptions { max_correspondence_distance: 0.3, max_iterations: 100, ..Default::default() };
-        let plane = target_index.register(&source, &init, &IcpOptions { method: IcpMethod::PointToPlane, ..opts }).unwrap();
+        let opts = IcpOptions {
+            max_correspondence_distance: 0.3,
+            max_iterations: 100,
+            ..Default::default()
+        };
+        let plane = target_index
+            .register(
+                &source,
+                &init,
+                &IcpOptions {
+                    method: IcpMethod::PointToPlane,
+                    ..opts
+                },
+            )
+            .unwrap();
         let point = target_index.register(&source, &init, &opts).unwrap();
         assert!(plane.pose.rotation_angle().to_degrees() < 1.0, "{plane:?}");
         assert!(plane.pose.translation.length() < 0.01, "{plane:?}");
-        assert!(plane.iterations <= point.iterations, "plane {} vs point {}", plane.iterations, point.iterations);
+        assert!(
+            plane.iterations <= point.iterations,
+            "plane {} vs point {}",
+            plane.iterations,
+            point.iterations
+        );
     }
 
     #[test]
     fn exact_copy_converges_to_the_truth() {
         let (pts, normals) = surface(2000, 5);
-        let truth = Pose::from_axis_angle(DVec3::new(1.0, 0.2, 0.1), 0.1, DVec3::new(0.02, 0.0, 0.03));
+        let truth =
+            Pose::from_axis_angle(DVec3::new(1.0, 0.2, 0.1), 0.1, DVec3::new(0.02, 0.0, 0.03));
         let target = truth.apply_all(&pts);
         let target_normals: Vec<Vec3> = normals.iter().map(|&n| truth.rotate_f32(n)).collect();
         for method in [IcpMethod::PointToPoint, IcpMethod::PointToPlane] {
-            let opts = IcpOptions { method, max_correspondence_distance: 0.5, max_iterations: 200, relative_fitness: 1e-9, relative_rmse: 1e-9 };
+            let opts = IcpOptions {
+                method,
+                max_correspondence_distance: 0.5,
+                max_iterations: 200,
+                relative_fitness: 1e-9,
+                relative_rmse: 1e-9,
+            };
             let r = icp(&pts, &target, Some(&target_normals), &Pose::IDENTITY, &opts).unwrap();
             assert!(r.pose.rotation_angle_to(&truth) < 1e-4, "{method:?}: {r:?}");
-            assert!(r.inlier_rmse < 1e-4 && r.fitness == 1.0, "{method:?}: {r:?}");
+            assert!(
+                r.inlier_rmse < 1e-4 && r.fitness == 1.0,
+                "{method:?}: {r:?}"
+            );
         }
     }
 
@@ -305,13 +388,30 @@ mod tests {
     fn point_to_plane_on_a_plane_does_not_slide_along_unconstrained_directions() {
         // A flat target constrains only the out-of-plane motion; the in-plane translation and
         // the rotation about the normal must stay as they were, not explode.
-        let target: Vec<Vec3> = (0..900).map(|i| Vec3::new((i % 30) as f32 * 0.05, (i / 30) as f32 * 0.05, 0.0)).collect();
+        let target: Vec<Vec3> = (0..900)
+            .map(|i| Vec3::new((i % 30) as f32 * 0.05, (i / 30) as f32 * 0.05, 0.0))
+            .collect();
         let normals = vec![Vec3::Z; target.len()];
-        let source: Vec<Vec3> = target.iter().step_by(3).map(|p| *p + Vec3::new(0.0, 0.0, 0.02)).collect();
-        let opts = IcpOptions { method: IcpMethod::PointToPlane, max_correspondence_distance: 0.5, max_iterations: 20, ..Default::default() };
+        let source: Vec<Vec3> = target
+            .iter()
+            .step_by(3)
+            .map(|p| *p + Vec3::new(0.0, 0.0, 0.02))
+            .collect();
+        let opts = IcpOptions {
+            method: IcpMethod::PointToPlane,
+            max_correspondence_distance: 0.5,
+            max_iterations: 20,
+            ..Default::default()
+        };
         let r = icp(&source, &target, Some(&normals), &Pose::IDENTITY, &opts).unwrap();
-        assert!(r.pose.translation.z.abs() > 0.0199 && r.pose.translation.z.abs() < 0.0201, "{r:?}");
-        assert!(r.pose.translation.x.abs() < 1e-6 && r.pose.translation.y.abs() < 1e-6, "{r:?}");
+        assert!(
+            r.pose.translation.z.abs() > 0.0199 && r.pose.translation.z.abs() < 0.0201,
+            "{r:?}"
+        );
+        assert!(
+            r.pose.translation.x.abs() < 1e-6 && r.pose.translation.y.abs() < 1e-6,
+            "{r:?}"
+        );
         assert!(r.pose.rotation_angle() < 1e-6 && r.fitness == 1.0, "{r:?}");
     }
 
@@ -320,9 +420,18 @@ mod tests {
         let (pts, _) = surface(100, 6);
         assert!(icp(&[], &pts, None, &Pose::IDENTITY, &IcpOptions::default()).is_err());
         assert!(icp(&pts, &[], None, &Pose::IDENTITY, &IcpOptions::default()).is_err());
-        let plane = IcpOptions { method: IcpMethod::PointToPlane, ..Default::default() };
-        assert!(icp(&pts, &pts, None, &Pose::IDENTITY, &plane).is_err(), "point-to-plane without normals");
-        let bad = IcpOptions { max_correspondence_distance: -1.0, ..Default::default() };
+        let plane = IcpOptions {
+            method: IcpMethod::PointToPlane,
+            ..Default::default()
+        };
+        assert!(
+            icp(&pts, &pts, None, &Pose::IDENTITY, &plane).is_err(),
+            "point-to-plane without normals"
+        );
+        let bad = IcpOptions {
+            max_correspondence_distance: -1.0,
+            ..Default::default()
+        };
         assert!(icp(&pts, &pts, None, &Pose::IDENTITY, &bad).is_err());
         let far = Pose::from_translation(DVec3::new(100.0, 0.0, 0.0));
         let r = icp(&pts, &pts, None, &far, &IcpOptions::default()).unwrap();

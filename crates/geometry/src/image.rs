@@ -20,7 +20,11 @@ pub type Mask = Image<bool>;
 impl<T: Clone> Image<T> {
     /// An image filled with `value`.
     pub fn filled(width: u32, height: u32, value: T) -> Self {
-        Image { width, height, data: vec![value; width as usize * height as usize] }
+        Image {
+            width,
+            height,
+            data: vec![value; width as usize * height as usize],
+        }
     }
 }
 
@@ -35,12 +39,17 @@ impl<T> Image<T> {
                 right: expected,
             });
         }
-        Ok(Image { width, height, data })
+        Ok(Image {
+            width,
+            height,
+            data,
+        })
     }
 
     /// The pixel at column `u`, row `v`, or `None` outside the image.
     pub fn get(&self, u: u32, v: u32) -> Option<&T> {
-        (u < self.width && v < self.height).then(|| &self.data[v as usize * self.width as usize + u as usize])
+        (u < self.width && v < self.height)
+            .then(|| &self.data[v as usize * self.width as usize + u as usize])
     }
 
     /// Fails unless this image is `width`×`height`.

@@ -26,15 +26,22 @@ impl KdTree {
     /// Builds the tree. Fails on an empty or non-finite input, or more than `u32::MAX` points.
     pub fn new(points: &[Vec3]) -> Result<KdTree, GeometryError> {
         if points.is_empty() {
-            return Err(GeometryError::Empty { what: "kd-tree points" });
+            return Err(GeometryError::Empty {
+                what: "kd-tree points",
+            });
         }
         check_finite("kd-tree points", points)?;
         let arrays: Vec<[f32; 3]> = points.iter().map(|p| p.to_array()).collect();
-        let tree = ImmutableKdTree::new_from_slice(&arrays).map_err(|e| GeometryError::InvalidParameter {
-            name: "kd-tree points",
-            message: format!("{e:?}"),
+        let tree = ImmutableKdTree::new_from_slice(&arrays).map_err(|e| {
+            GeometryError::InvalidParameter {
+                name: "kd-tree points",
+                message: format!("{e:?}"),
+            }
         })?;
-        Ok(KdTree { tree, len: points.len() })
+        Ok(KdTree {
+            tree,
+            len: points.len(),
+        })
     }
 
     /// Number of indexed points.
@@ -48,19 +55,31 @@ impl KdTree {
 
     /// The nearest indexed point to `query`.
     pub fn nearest(&self, query: Vec3) -> Neighbour {
-        let r = self.tree.query(&query.to_array()).nearest_one::<SquaredEuclidean<f32>>().execute();
-        Neighbour { index: r.item as usize, distance: r.distance.sqrt() }
+        let r = self
+            .tree
+            .query(&query.to_array())
+            .nearest_one::<SquaredEuclidean<f32>>()
+            .execute();
+        Neighbour {
+            index: r.item as usize,
+            distance: r.distance.sqrt(),
+        }
     }
 
     /// The `k` nearest indexed points, nearest first (fewer when the tree holds fewer than `k`).
     pub fn k_nearest(&self, query: Vec3, k: usize) -> Vec<Neighbour> {
-        let Some(k) = NonZero::new(k.min(self.len)) else { return Vec::new() };
+        let Some(k) = NonZero::new(k.min(self.len)) else {
+            return Vec::new();
+        };
         self.tree
             .query(&query.to_array())
             .nearest_n::<SquaredEuclidean<f32>>(k)
             .execute()
             .into_iter()
-            .map(|r| Neighbour { index: r.item as usize, distance: r.distance.sqrt() })
+            .map(|r| Neighbour {
+                index: r.item as usize,
+                distance: r.distance.sqrt(),
+            })
             .collect()
     }
 
@@ -74,7 +93,10 @@ impl KdTree {
             .within::<SquaredEuclidean<f32>>(radius * radius)
             .execute()
             .into_iter()
-            .map(|r| Neighbour { index: r.item as usize, distance: r.distance.sqrt() })
+            .map(|r| Neighbour {
+                index: r.item as usize,
+                distance: r.distance.sqrt(),
+            })
             .collect()
     }
 
@@ -92,7 +114,9 @@ mod tests {
 
     fn random_points(n: usize, seed: u64) -> Vec<Vec3> {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-        (0..n).map(|_| Vec3::new(rng.random(), rng.random(), rng.random())).collect()
+        (0..n)
+            .map(|_| Vec3::new(rng.random(), rng.random(), rng.random()))
+            .collect()
     }
 
     #[test]
@@ -100,11 +124,18 @@ mod tests {
         let pts = random_points(2000, 1);
         let tree = KdTree::new(&pts).unwrap();
         for q in random_points(50, 2) {
-            let mut brute: Vec<(f32, usize)> = pts.iter().enumerate().map(|(i, p)| (p.distance(q), i)).collect();
+            let mut brute: Vec<(f32, usize)> = pts
+                .iter()
+                .enumerate()
+                .map(|(i, p)| (p.distance(q), i))
+                .collect();
             brute.sort_by(|a, b| a.0.total_cmp(&b.0));
             assert_eq!(tree.nearest(q).index, brute[0].1);
             let knn = tree.k_nearest(q, 20);
-            assert_eq!(knn.iter().map(|n| n.index).collect::<Vec<_>>(), brute[..20].iter().map(|b| b.1).collect::<Vec<_>>());
+            assert_eq!(
+                knn.iter().map(|n| n.index).collect::<Vec<_>>(),
+                brute[..20].iter().map(|b| b.1).collect::<Vec<_>>()
+            );
             assert!((knn[19].distance - brute[19].0).abs() < 1e-6);
             let r = 0.1;
             let mut within: Vec<usize> = tree.within_radius(q, r).iter().map(|n| n.index).collect();

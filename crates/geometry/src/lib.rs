@@ -24,6 +24,9 @@
 //! assert!(estimate.rotation_angle_to(&truth) < 1e-6);
 //! ```
 
+// `!(x > 0.0)` is how this crate rejects NaN together with non-positive values, on purpose.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 mod camera;
 mod cloud;
 mod error;
@@ -36,20 +39,23 @@ mod procrustes;
 
 /// Reading and writing meshes and point clouds (OBJ, OFF, PLY, glTF/GLB).
 pub mod io;
-/// Procedural shapes: primitives and seeded composite objects.
-pub mod shapes;
 /// Surface sampling: area-weighted uniform and visible-surface.
 pub mod sampling;
+/// Procedural shapes: primitives and seeded composite objects.
+pub mod shapes;
 
-pub use cloud::{PointCloud, estimate_normals, random_subsample, random_subsample_indices, voxel_downsample, voxel_downsample_points, voxel_of};
-pub use icp::*;
-pub use knn::*;
-pub use procrustes::*;
 pub use camera::{Intrinsics, ViewSphere, Viewpoint, look_at};
+pub use cloud::{
+    PointCloud, estimate_normals, random_subsample, random_subsample_indices, voxel_downsample,
+    voxel_downsample_points, voxel_of,
+};
 pub use error::{GeometryError, MeshDataError, MeshError};
+pub use icp::*;
 pub use image::{DepthImage, Image, InstanceImage, Mask};
+pub use knn::*;
 pub use mesh::{Aabb, Mesh, Normalisation};
 pub use pose::{Pose, rotation_angle};
+pub use procrustes::*;
 
 /// Re-exported so users build points and poses with the same types.
 pub use glam;

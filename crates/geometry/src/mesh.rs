@@ -27,10 +27,19 @@ impl Aabb {
     pub fn from_points(points: impl IntoIterator<Item = Vec3>) -> Option<Aabb> {
         let mut it = points.into_iter();
         let first = it.next()?.as_dvec3();
-        Some(it.fold(Aabb { min: first, max: first }, |b, p| {
-            let p = p.as_dvec3();
-            Aabb { min: b.min.min(p), max: b.max.max(p) }
-        }))
+        Some(it.fold(
+            Aabb {
+                min: first,
+                max: first,
+            },
+            |b, p| {
+                let p = p.as_dvec3();
+                Aabb {
+                    min: b.min.min(p),
+                    max: b.max.max(p),
+                }
+            },
+        ))
     }
     pub fn centre(&self) -> DVec3 {
         0.5 * (self.min + self.max)
@@ -67,18 +76,27 @@ impl Normalisation {
     /// frame scaled by `1/scale`) into the pose of the original model in original units:
     /// `x_cam = R·(x − centre) + scale·t`, i.e. `t' = scale·t − R·centre`.
     pub fn pose_to_original(&self, pose: &Pose) -> Pose {
-        Pose::new(pose.rotation, self.scale * pose.translation - pose.rotation * self.centre)
+        Pose::new(
+            pose.rotation,
+            self.scale * pose.translation - pose.rotation * self.centre,
+        )
     }
     /// The inverse of [`Normalisation::pose_to_original`].
     pub fn pose_to_normalised(&self, pose: &Pose) -> Pose {
-        Pose::new(pose.rotation, (pose.translation + pose.rotation * self.centre) / self.scale)
+        Pose::new(
+            pose.rotation,
+            (pose.translation + pose.rotation * self.centre) / self.scale,
+        )
     }
 }
 
 impl Mesh {
     /// A validated mesh: at least one vertex and one face, finite coordinates, indices in range.
     pub fn new(vertices: Vec<Vec3>, triangles: Vec<[u32; 3]>) -> Result<Mesh, MeshDataError> {
-        let mesh = Mesh { vertices, triangles };
+        let mesh = Mesh {
+            vertices,
+            triangles,
+        };
         mesh.validate()?;
         Ok(mesh)
     }
@@ -99,7 +117,11 @@ impl Mesh {
         let n = self.vertices.len();
         for (face, t) in self.triangles.iter().enumerate() {
             if let Some(&index) = t.iter().find(|&&i| i as usize >= n) {
-                return Err(MeshDataError::IndexOutOfRange { face, index: index as u64, vertex_count: n });
+                return Err(MeshDataError::IndexOutOfRange {
+                    face,
+                    index: index as u64,
+                    vertex_count: n,
+                });
             }
         }
         Ok(())
@@ -150,7 +172,9 @@ impl Mesh {
                 acc[v as usize] += n;
             }
         }
-        acc.into_iter().map(|n| n.normalize_or_zero().as_vec3()).collect()
+        acc.into_iter()
+            .map(|n| n.normalize_or_zero().as_vec3())
+            .collect()
     }
 
     /// The bounding box of the vertices (`None` for an empty mesh).
@@ -166,7 +190,10 @@ impl Mesh {
         if !(half > 0.0 && half.is_finite()) {
             return Err(MeshDataError::ZeroArea);
         }
-        let norm = Normalisation { centre: b.centre(), scale: half };
+        let norm = Normalisation {
+            centre: b.centre(),
+            scale: half,
+        };
         for v in &mut self.vertices {
             *v = norm.to_normalised(v.as_dvec3()).as_vec3();
         }
@@ -175,14 +202,18 @@ impl Mesh {
 
     /// A copy with every vertex transformed by `pose`.
     pub fn transformed(&self, pose: &Pose) -> Mesh {
-        Mesh { vertices: pose.apply_all(&self.vertices), triangles: self.triangles.clone() }
+        Mesh {
+            vertices: pose.apply_all(&self.vertices),
+            triangles: self.triangles.clone(),
+        }
     }
 
     /// Appends another mesh (indices shifted).
     pub fn append(&mut self, other: &Mesh) {
         let offset = self.vertices.len() as u32;
         self.vertices.extend_from_slice(&other.vertices);
-        self.triangles.extend(other.triangles.iter().map(|t| t.map(|i| i + offset)));
+        self.triangles
+            .extend(other.triangles.iter().map(|t| t.map(|i| i + offset)));
     }
 
     /// Flips the orientation of every triangle.
@@ -199,7 +230,12 @@ mod tests {
 
     fn tetra() -> Mesh {
         Mesh::new(
-            vec![Vec3::new(0.0, 0.0, 0.0), Vec3::new(4.0, 0.0, 0.0), Vec3::new(0.0, 2.0, 0.0), Vec3::new(0.0, 0.0, 1.0)],
+            vec![
+                Vec3::new(0.0, 0.0, 0.0),
+                Vec3::new(4.0, 0.0, 0.0),
+                Vec3::new(0.0, 2.0, 0.0),
+                Vec3::new(0.0, 0.0, 1.0),
+            ],
             vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
         )
         .unwrap()
@@ -208,13 +244,23 @@ mod tests {
     #[test]
     fn validation_names_the_bad_element() {
         assert_eq!(Mesh::new(vec![], vec![]), Err(MeshDataError::NoVertices));
-        assert_eq!(Mesh::new(vec![Vec3::ZERO], vec![]), Err(MeshDataError::NoFaces));
+        assert_eq!(
+            Mesh::new(vec![Vec3::ZERO], vec![]),
+            Err(MeshDataError::NoFaces)
+        );
         assert_eq!(
             Mesh::new(vec![Vec3::ZERO; 3], vec![[0, 1, 2], [0, 1, 3]]),
-            Err(MeshDataError::IndexOutOfRange { face: 1, index: 3, vertex_count: 3 })
+            Err(MeshDataError::IndexOutOfRange {
+                face: 1,
+                index: 3,
+                vertex_count: 3
+            })
         );
         assert!(matches!(
-            Mesh::new(vec![Vec3::ZERO, Vec3::new(0.0, f32::NAN, 0.0), Vec3::ONE], vec![[0, 1, 2]]),
+            Mesh::new(
+                vec![Vec3::ZERO, Vec3::new(0.0, f32::NAN, 0.0), Vec3::ONE],
+                vec![[0, 1, 2]]
+            ),
             Err(MeshDataError::NonFiniteVertex { vertex: 1, .. })
         ));
     }
@@ -246,7 +292,9 @@ mod tests {
         let m = tetra();
         // Faces: xy (4·2/2 = 4), xz (4·1/2 = 2), yz (2·1/2 = 1), slanted.
         let a = m.triangle_areas();
-        assert!((a[0] - 4.0).abs() < 1e-12 && (a[1] - 2.0).abs() < 1e-12 && (a[2] - 1.0).abs() < 1e-12);
+        assert!(
+            (a[0] - 4.0).abs() < 1e-12 && (a[1] - 2.0).abs() < 1e-12 && (a[2] - 1.0).abs() < 1e-12
+        );
         let n = m.face_normals();
         assert!(n[0].abs_diff_eq(Vec3::new(0.0, 0.0, -1.0), 1e-6));
         assert!(n[1].abs_diff_eq(Vec3::new(0.0, -1.0, 0.0), 1e-6));

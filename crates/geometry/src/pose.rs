@@ -36,7 +36,10 @@ impl TryFrom<PoseFile> for Pose {
 
 impl From<Pose> for PoseFile {
     fn from(p: Pose) -> Self {
-        PoseFile { r: p.rotation_row_major(), t: p.translation.to_array() }
+        PoseFile {
+            r: p.rotation_row_major(),
+            t: p.translation.to_array(),
+        }
     }
 }
 
@@ -47,17 +50,26 @@ impl Default for Pose {
 }
 
 impl Pose {
-    pub const IDENTITY: Pose = Pose { rotation: DMat3::IDENTITY, translation: DVec3::ZERO };
+    pub const IDENTITY: Pose = Pose {
+        rotation: DMat3::IDENTITY,
+        translation: DVec3::ZERO,
+    };
 
     /// A pose from a rotation matrix and a translation (the rotation is trusted; see
     /// [`Pose::from_row_major`] for a checked constructor).
     pub fn new(rotation: DMat3, translation: DVec3) -> Self {
-        Pose { rotation, translation }
+        Pose {
+            rotation,
+            translation,
+        }
     }
 
     /// A pure translation.
     pub fn from_translation(translation: DVec3) -> Self {
-        Pose { rotation: DMat3::IDENTITY, translation }
+        Pose {
+            rotation: DMat3::IDENTITY,
+            translation,
+        }
     }
 
     /// Rotation by `angle` radians about `axis` (need not be unit length), then translation.
@@ -67,7 +79,10 @@ impl Pose {
             Some(a) => DMat3::from_axis_angle(a, angle),
             None => DMat3::IDENTITY,
         };
-        Pose { rotation, translation }
+        Pose {
+            rotation,
+            translation,
+        }
     }
 
     /// Rotation from a rotation vector (axis × angle in radians).
@@ -76,30 +91,54 @@ impl Pose {
     }
 
     /// Rotation from a quaternion `(w, x, y, z)`; it is normalised first.
-    pub fn from_quaternion(w: f64, x: f64, y: f64, z: f64, translation: DVec3) -> Result<Self, GeometryError> {
+    pub fn from_quaternion(
+        w: f64,
+        x: f64,
+        y: f64,
+        z: f64,
+        translation: DVec3,
+    ) -> Result<Self, GeometryError> {
         let q = DQuat::from_xyzw(x, y, z, w);
         let n = q.length();
         if !n.is_finite() || n < 1e-12 {
-            return Err(GeometryError::InvalidRotation(format!("quaternion ({w}, {x}, {y}, {z}) has no direction")));
+            return Err(GeometryError::InvalidRotation(format!(
+                "quaternion ({w}, {x}, {y}, {z}) has no direction"
+            )));
         }
-        Ok(Pose { rotation: DMat3::from_quat(q / n), translation })
+        Ok(Pose {
+            rotation: DMat3::from_quat(q / n),
+            translation,
+        })
     }
 
     /// A pose from a row-major rotation and a translation, as written in files. Fails when the
     /// values are not finite or `R` is not a rotation (‖RᵀR − I‖ > 1e-4 or det R < 0).
     pub fn from_row_major(r: [[f64; 3]; 3], t: [f64; 3]) -> Result<Self, GeometryError> {
         if r.iter().flatten().chain(t.iter()).any(|v| !v.is_finite()) {
-            return Err(GeometryError::InvalidRotation("R or t holds a non-finite value".into()));
+            return Err(GeometryError::InvalidRotation(
+                "R or t holds a non-finite value".into(),
+            ));
         }
         let rotation = DMat3::from_cols_array_2d(&r).transpose();
-        let err = (rotation.transpose() * rotation - DMat3::IDENTITY).to_cols_array().iter().map(|v| v.abs()).fold(0.0, f64::max);
+        let err = (rotation.transpose() * rotation - DMat3::IDENTITY)
+            .to_cols_array()
+            .iter()
+            .map(|v| v.abs())
+            .fold(0.0, f64::max);
         if err > 1e-4 {
-            return Err(GeometryError::InvalidRotation(format!("R is not orthonormal (max |RᵀR − I| = {err:.2e})")));
+            return Err(GeometryError::InvalidRotation(format!(
+                "R is not orthonormal (max |RᵀR − I| = {err:.2e})"
+            )));
         }
         if rotation.determinant() < 0.0 {
-            return Err(GeometryError::InvalidRotation("det R < 0 (a reflection, not a rotation)".into()));
+            return Err(GeometryError::InvalidRotation(
+                "det R < 0 (a reflection, not a rotation)".into(),
+            ));
         }
-        Ok(Pose { rotation, translation: DVec3::from_array(t) })
+        Ok(Pose {
+            rotation,
+            translation: DVec3::from_array(t),
+        })
     }
 
     /// The rotation as row-major rows `R[i][j]`.
@@ -130,7 +169,10 @@ impl Pose {
     /// The inverse transform `x ↦ Rᵀ(x − t)`.
     pub fn inverse(&self) -> Pose {
         let rt = self.rotation.transpose();
-        Pose { rotation: rt, translation: -(rt * self.translation) }
+        Pose {
+            rotation: rt,
+            translation: -(rt * self.translation),
+        }
     }
 
     /// Applies the pose to an f64 point.
@@ -173,7 +215,10 @@ impl Pose {
     /// many compositions.
     pub fn orthonormalised(&self) -> Pose {
         let q = DQuat::from_mat3(&self.rotation).normalize();
-        Pose { rotation: DMat3::from_quat(q), translation: self.translation }
+        Pose {
+            rotation: DMat3::from_quat(q),
+            translation: self.translation,
+        }
     }
 }
 
@@ -182,7 +227,12 @@ pub fn rotation_angle(r: &DMat3) -> f64 {
     let c = ((r.x_axis.x + r.y_axis.y + r.z_axis.z - 1.0) / 2.0).clamp(-1.0, 1.0);
     // arccos loses precision near 0; use atan2 with the skew part for small angles.
     let s = 0.5
-        * DVec3::new(r.y_axis.z - r.z_axis.y, r.z_axis.x - r.x_axis.z, r.x_axis.y - r.y_axis.x).length();
+        * DVec3::new(
+            r.y_axis.z - r.z_axis.y,
+            r.z_axis.x - r.x_axis.z,
+            r.x_axis.y - r.y_axis.x,
+        )
+        .length();
     s.atan2(c)
 }
 
@@ -203,14 +253,30 @@ mod tests {
         let a = Pose::from_axis_angle(DVec3::Z, 0.5, DVec3::X);
         let b = Pose::from_axis_angle(DVec3::Y, -0.2, DVec3::new(0.0, 1.0, 2.0));
         let x = DVec3::new(0.1, 0.2, 0.3);
-        assert!(a.compose(&b).apply(x).abs_diff_eq(a.apply(b.apply(x)), 1e-12));
+        assert!(
+            a.compose(&b)
+                .apply(x)
+                .abs_diff_eq(a.apply(b.apply(x)), 1e-12)
+        );
     }
 
     #[test]
     fn rotation_angle_matches_axis_angle_including_tiny_and_pi() {
-        for &angle in &[0.0, 1e-9, 1e-4, 0.7, 2.0, std::f64::consts::PI - 1e-6, std::f64::consts::PI] {
+        for &angle in &[
+            0.0,
+            1e-9,
+            1e-4,
+            0.7,
+            2.0,
+            std::f64::consts::PI - 1e-6,
+            std::f64::consts::PI,
+        ] {
             let p = Pose::from_axis_angle(DVec3::new(0.2, -1.0, 0.4), angle, DVec3::ZERO);
-            assert!((p.rotation_angle() - angle).abs() < 1e-7, "{angle} vs {}", p.rotation_angle());
+            assert!(
+                (p.rotation_angle() - angle).abs() < 1e-7,
+                "{angle} vs {}",
+                p.rotation_angle()
+            );
         }
     }
 
@@ -225,10 +291,19 @@ mod tests {
 
     #[test]
     fn json_is_row_major() {
-        let p = Pose::from_axis_angle(DVec3::Z, std::f64::consts::FRAC_PI_2, DVec3::new(1.0, 2.0, 3.0));
+        let p = Pose::from_axis_angle(
+            DVec3::Z,
+            std::f64::consts::FRAC_PI_2,
+            DVec3::new(1.0, 2.0, 3.0),
+        );
         let json = serde_json::to_value(p).unwrap();
         // Rz(90°): first row is (0, -1, 0).
-        let r0: Vec<f64> = json["R"][0].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+        let r0: Vec<f64> = json["R"][0]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
         assert!((r0[0]).abs() < 1e-12 && (r0[1] + 1.0).abs() < 1e-12 && r0[2].abs() < 1e-12);
         let back: Pose = serde_json::from_value(json).unwrap();
         assert!(back.rotation.abs_diff_eq(p.rotation, 1e-12));

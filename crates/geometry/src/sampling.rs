@@ -29,7 +29,11 @@ use crate::{GeometryError, Mesh, PointCloud};
 
 /// Checks the mesh and returns its cumulative triangle areas (f64, last = total area).
 fn cumulative_areas(mesh: &Mesh) -> Result<Vec<f64>, GeometryError> {
-    mesh.validate().map_err(|e| GeometryError::InvalidParameter { name: "mesh", message: e.to_string() })?;
+    mesh.validate()
+        .map_err(|e| GeometryError::InvalidParameter {
+            name: "mesh",
+            message: e.to_string(),
+        })?;
     let mut total = 0.0;
     let cumulative: Vec<f64> = mesh
         .triangle_areas()
@@ -82,12 +86,20 @@ fn draw_uniform(
 ///
 /// Errors: [`GeometryError::InvalidParameter`] (`name = "mesh"`) when the mesh is invalid
 /// (no faces, out-of-range indices, non-finite vertices) or has zero total area.
-pub fn sample_surface_uniform(mesh: &Mesh, count: usize, seed: u64) -> Result<PointCloud, GeometryError> {
+pub fn sample_surface_uniform(
+    mesh: &Mesh,
+    count: usize,
+    seed: u64,
+) -> Result<PointCloud, GeometryError> {
     let cumulative = cumulative_areas(mesh)?;
     let normals = mesh.face_normals();
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let (points, normals) = draw_uniform(mesh, &cumulative, &normals, count, &mut rng);
-    Ok(PointCloud { points, normals: Some(normals), colors: None })
+    Ok(PointCloud {
+        points,
+        normals: Some(normals),
+        colors: None,
+    })
 }
 
 /// Settings of [`sample_visible_surface`]. Lengths are relative to the diagonal of the mesh's
@@ -132,18 +144,29 @@ impl Default for VisibleSurfaceOptions {
 
 impl VisibleSurfaceOptions {
     fn validate(&self) -> Result<(), GeometryError> {
-        let bad = |name: &'static str, message: String| Err(GeometryError::InvalidParameter { name, message });
+        let bad = |name: &'static str, message: String| {
+            Err(GeometryError::InvalidParameter { name, message })
+        };
         if self.views == 0 {
             return bad("views", "must be ≥ 1".into());
         }
         if !(2..=8192).contains(&self.resolution) {
-            return bad("resolution", format!("must be in 2..=8192, got {}", self.resolution));
+            return bad(
+                "resolution",
+                format!("must be in 2..=8192, got {}", self.resolution),
+            );
         }
         if !(self.depth_tolerance.is_finite() && self.depth_tolerance >= 0.0) {
-            return bad("depth_tolerance", format!("must be finite and ≥ 0, got {}", self.depth_tolerance));
+            return bad(
+                "depth_tolerance",
+                format!("must be finite and ≥ 0, got {}", self.depth_tolerance),
+            );
         }
         if !(self.pixel_tolerance.is_finite() && self.pixel_tolerance >= 0.0) {
-            return bad("pixel_tolerance", format!("must be finite and ≥ 0, got {}", self.pixel_tolerance));
+            return bad(
+                "pixel_tolerance",
+                format!("must be finite and ≥ 0, got {}", self.pixel_tolerance),
+            );
         }
         if self.oversample == 0 {
             return bad("oversample", "must be ≥ 1".into());
@@ -183,13 +206,25 @@ impl View {
         let helper = if d.x.abs() < 0.9 { DVec3::X } else { DVec3::Y };
         let u = d.cross(helper).normalize();
         let v = d.cross(u);
-        View { u, v, d, centre, half, pixel: 2.0 * half / res as f64, res }
+        View {
+            u,
+            v,
+            d,
+            centre,
+            half,
+            pixel: 2.0 * half / res as f64,
+            res,
+        }
     }
 
     /// Image position (pixels) and depth of a point.
     fn project(&self, p: DVec3) -> DVec3 {
         let q = p - self.centre;
-        DVec3::new((q.dot(self.u) + self.half) / self.pixel - 0.5, (q.dot(self.v) + self.half) / self.pixel - 0.5, q.dot(self.d))
+        DVec3::new(
+            (q.dot(self.u) + self.half) / self.pixel - 0.5,
+            (q.dot(self.v) + self.half) / self.pixel - 0.5,
+            q.dot(self.d),
+        )
     }
 }
 
@@ -221,7 +256,11 @@ fn visible_in_view(
     let mut front = vec![u32::MAX; res * res];
     let tri = |f: usize| {
         let [i, j, k] = mesh.triangles[f];
-        [projected[i as usize], projected[j as usize], projected[k as usize]]
+        [
+            projected[i as usize],
+            projected[j as usize],
+            projected[k as usize],
+        ]
     };
     for f in 0..mesh.triangles.len() {
         let [a, b, c] = tri(f);
@@ -293,7 +332,9 @@ fn visible_in_view(
 
 /// Marks which `candidates` (points on the surface) are visible from at least one view.
 fn visibility(mesh: &Mesh, candidates: &[DVec3], options: &VisibleSurfaceOptions) -> Vec<bool> {
-    let Some(bounds) = mesh.bounds() else { return vec![false; candidates.len()] };
+    let Some(bounds) = mesh.bounds() else {
+        return vec![false; candidates.len()];
+    };
     let diagonal = bounds.diagonal().max(f64::MIN_POSITIVE);
     // A small margin keeps silhouettes off the image border.
     let half = 0.5 * diagonal * 1.02;
@@ -358,11 +399,16 @@ pub fn sample_visible_surface(
     let mut points = Vec::new();
     let mut normals = Vec::new();
     if count == 0 {
-        return Ok(PointCloud { points, normals: Some(normals), colors: None });
+        return Ok(PointCloud {
+            points,
+            normals: Some(normals),
+            colors: None,
+        });
     }
     let batch = count.saturating_mul(options.oversample);
     for _ in 0..=options.max_retries {
-        let (candidates, cand_normals) = draw_uniform(mesh, &cumulative, &face_normals, batch, &mut rng);
+        let (candidates, cand_normals) =
+            draw_uniform(mesh, &cumulative, &face_normals, batch, &mut rng);
         let cand64: Vec<DVec3> = candidates.iter().map(|p| p.as_dvec3()).collect();
         let visible = visibility(mesh, &cand64, &options);
         for ((p, n), v) in candidates.into_iter().zip(cand_normals).zip(visible) {
@@ -384,21 +430,35 @@ pub fn sample_visible_surface(
     }
     points.truncate(keep);
     normals.truncate(keep);
-    Ok(PointCloud { points, normals: Some(normals), colors: None })
+    Ok(PointCloud {
+        points,
+        normals: Some(normals),
+        colors: None,
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::shapes::{box_mesh, composite, icosphere, CompositeKind};
     use crate::Pose;
+    use crate::shapes::{CompositeKind, box_mesh, composite, icosphere};
 
     /// Two unit-half-extent boxes, the second shifted by (1, 0.5, 0.25): they interpenetrate.
     fn overlapping_boxes() -> (Mesh, [(Vec3, Vec3); 2]) {
         let mut m = box_mesh(Vec3::ONE).unwrap();
         let shift = Vec3::new(1.0, 0.5, 0.25);
-        m.append(&box_mesh(Vec3::ONE).unwrap().transformed(&Pose::from_translation(shift.as_dvec3())));
-        (m, [(-Vec3::ONE, Vec3::ONE), (shift - Vec3::ONE, shift + Vec3::ONE)])
+        m.append(
+            &box_mesh(Vec3::ONE)
+                .unwrap()
+                .transformed(&Pose::from_translation(shift.as_dvec3())),
+        );
+        (
+            m,
+            [
+                (-Vec3::ONE, Vec3::ONE),
+                (shift - Vec3::ONE, shift + Vec3::ONE),
+            ],
+        )
     }
 
     /// Strictly inside a box, more than `margin` from its faces.
@@ -407,7 +467,11 @@ mod tests {
     }
 
     fn interior_fraction(cloud: &PointCloud, boxes: &[(Vec3, Vec3); 2], margin: f32) -> f64 {
-        let n = cloud.points.iter().filter(|&&p| boxes.iter().any(|&b| inside(p, b, margin))).count();
+        let n = cloud
+            .points
+            .iter()
+            .filter(|&&p| boxes.iter().any(|&b| inside(p, b, margin)))
+            .count();
         n as f64 / cloud.len() as f64
     }
 
@@ -415,9 +479,13 @@ mod tests {
     fn visible_sampling_avoids_interior_faces_of_overlapping_boxes() {
         let (m, boxes) = overlapping_boxes();
         let uniform = sample_surface_uniform(&m, 4000, 5).unwrap();
-        let visible = sample_visible_surface(&m, 4000, 5, VisibleSurfaceOptions::default()).unwrap();
+        let visible =
+            sample_visible_surface(&m, 4000, 5, VisibleSurfaceOptions::default()).unwrap();
         assert_eq!(visible.len(), 4000);
-        let (fu, fv) = (interior_fraction(&uniform, &boxes, 1e-4), interior_fraction(&visible, &boxes, 1e-4));
+        let (fu, fv) = (
+            interior_fraction(&uniform, &boxes, 1e-4),
+            interior_fraction(&visible, &boxes, 1e-4),
+        );
         eprintln!("interior fraction: uniform {fu:.4}, visible {fv:.4}");
         // About a quarter of the faces' area lies inside the other box.
         assert!(fu > 0.1, "uniform interior fraction {fu}");
@@ -432,7 +500,12 @@ mod tests {
         m.append(&icosphere(0.5, 2).unwrap());
         let cloud = sample_visible_surface(&m, 3000, 4, VisibleSurfaceOptions::default()).unwrap();
         assert_eq!(cloud.len(), 3000);
-        assert!(cloud.points.iter().all(|p| p.abs().max_element() > 1.0 - 1e-5));
+        assert!(
+            cloud
+                .points
+                .iter()
+                .all(|p| p.abs().max_element() > 1.0 - 1e-5)
+        );
     }
 
     #[test]
@@ -448,25 +521,45 @@ mod tests {
             assert!(p.abs().cmple(h + 1e-5).all(), "{p} is outside the box");
             // The normal is that of the face the point is on.
             let axis = d.min_position();
-            assert!((n[axis].abs() - 1.0).abs() < 1e-6 && n[axis] * p[axis] > 0.0, "normal {n} at {p}");
+            assert!(
+                (n[axis].abs() - 1.0).abs() < 1e-6 && n[axis] * p[axis] > 0.0,
+                "normal {n} at {p}"
+            );
         }
         // All six faces are reached, roughly in proportion to their areas.
         let face_area = [h.y * h.z, h.x * h.z, h.x * h.y];
         let total: f32 = 2.0 * face_area.iter().sum::<f32>();
         for axis in 0..3 {
-            let n = cloud.points.iter().filter(|p| ((p[axis].abs() - h[axis]).abs()) < 1e-5).count();
+            let n = cloud
+                .points
+                .iter()
+                .filter(|p| ((p[axis].abs() - h[axis]).abs()) < 1e-5)
+                .count();
             let expected = 2.0 * face_area[axis] / total;
             let got = n as f32 / cloud.len() as f32;
-            assert!((got - expected).abs() < 0.04, "axis {axis}: {got} vs {expected}");
+            assert!(
+                (got - expected).abs() < 0.04,
+                "axis {axis}: {got} vs {expected}"
+            );
         }
     }
 
     #[test]
     fn sampling_is_seeded() {
         let m = composite(CompositeKind::Chair, 4);
-        let o = VisibleSurfaceOptions { resolution: 128, views: 20, ..Default::default() };
-        assert_eq!(sample_surface_uniform(&m, 300, 1).unwrap(), sample_surface_uniform(&m, 300, 1).unwrap());
-        assert_ne!(sample_surface_uniform(&m, 300, 1).unwrap(), sample_surface_uniform(&m, 300, 2).unwrap());
+        let o = VisibleSurfaceOptions {
+            resolution: 128,
+            views: 20,
+            ..Default::default()
+        };
+        assert_eq!(
+            sample_surface_uniform(&m, 300, 1).unwrap(),
+            sample_surface_uniform(&m, 300, 1).unwrap()
+        );
+        assert_ne!(
+            sample_surface_uniform(&m, 300, 1).unwrap(),
+            sample_surface_uniform(&m, 300, 2).unwrap()
+        );
         let a = sample_visible_surface(&m, 300, 1, o).unwrap();
         assert_eq!(a, sample_visible_surface(&m, 300, 1, o).unwrap());
         assert_ne!(a, sample_visible_surface(&m, 300, 2, o).unwrap());
@@ -489,12 +582,22 @@ mod tests {
         .unwrap();
         let cloud = sample_surface_uniform(&m, 20000, 3).unwrap();
         let big = cloud.points.iter().filter(|p| p.x < 5.0).count() as f64 / cloud.len() as f64;
-        assert!((big - 8.0 / 8.5).abs() < 0.01, "fraction on the big triangle {big}");
+        assert!(
+            (big - 8.0 / 8.5).abs() < 0.01,
+            "fraction on the big triangle {big}"
+        );
         // Points lie inside their triangle, uniformly: the mean of the big one's is its centroid.
         let on_big: Vec<_> = cloud.points.iter().filter(|p| p.x < 5.0).collect();
         let mean = on_big.iter().fold(Vec3::ZERO, |s, p| s + **p) / on_big.len() as f32;
-        assert!(mean.abs_diff_eq(Vec3::new(4.0 / 3.0, 4.0 / 3.0, 0.0), 0.03), "mean {mean}");
-        assert!(on_big.iter().all(|p| p.x >= 0.0 && p.y >= 0.0 && p.x + p.y <= 4.0 + 1e-5));
+        assert!(
+            mean.abs_diff_eq(Vec3::new(4.0 / 3.0, 4.0 / 3.0, 0.0), 0.03),
+            "mean {mean}"
+        );
+        assert!(
+            on_big
+                .iter()
+                .all(|p| p.x >= 0.0 && p.y >= 0.0 && p.x + p.y <= 4.0 + 1e-5)
+        );
         assert!(cloud.normals.unwrap().iter().all(|n| *n == Vec3::Z));
     }
 
@@ -502,13 +605,32 @@ mod tests {
     fn empty_counts_and_bad_input() {
         let m = icosphere(1.0, 1).unwrap();
         assert!(sample_surface_uniform(&m, 0, 1).unwrap().is_empty());
-        assert!(sample_visible_surface(&m, 0, 1, VisibleSurfaceOptions::default()).unwrap().is_empty());
+        assert!(
+            sample_visible_surface(&m, 0, 1, VisibleSurfaceOptions::default())
+                .unwrap()
+                .is_empty()
+        );
         let flat = Mesh::new(vec![Vec3::ZERO, Vec3::X, Vec3::X * 2.0], vec![[0, 1, 2]]).unwrap();
-        assert!(matches!(sample_surface_uniform(&flat, 10, 1), Err(GeometryError::InvalidParameter { name: "mesh", .. })));
-        assert!(matches!(sample_surface_uniform(&Mesh::default(), 10, 1), Err(GeometryError::InvalidParameter { .. })));
-        let bad = VisibleSurfaceOptions { views: 0, ..Default::default() };
-        assert!(matches!(sample_visible_surface(&m, 10, 1, bad), Err(GeometryError::InvalidParameter { name: "views", .. })));
-        let bad = VisibleSurfaceOptions { depth_tolerance: f64::NAN, ..Default::default() };
+        assert!(matches!(
+            sample_surface_uniform(&flat, 10, 1),
+            Err(GeometryError::InvalidParameter { name: "mesh", .. })
+        ));
+        assert!(matches!(
+            sample_surface_uniform(&Mesh::default(), 10, 1),
+            Err(GeometryError::InvalidParameter { .. })
+        ));
+        let bad = VisibleSurfaceOptions {
+            views: 0,
+            ..Default::default()
+        };
+        assert!(matches!(
+            sample_visible_surface(&m, 10, 1, bad),
+            Err(GeometryError::InvalidParameter { name: "views", .. })
+        ));
+        let bad = VisibleSurfaceOptions {
+            depth_tolerance: f64::NAN,
+            ..Default::default()
+        };
         assert!(sample_visible_surface(&m, 10, 1, bad).is_err());
     }
 
@@ -517,7 +639,11 @@ mod tests {
         let m = composite(CompositeKind::Mug, 11);
         let start = std::time::Instant::now();
         let cloud = sample_visible_surface(&m, 1024, 0, VisibleSurfaceOptions::default()).unwrap();
-        eprintln!("visible sampling, 1024 points on a mug ({} triangles): {:?}", m.triangles.len(), start.elapsed());
+        eprintln!(
+            "visible sampling, 1024 points on a mug ({} triangles): {:?}",
+            m.triangles.len(),
+            start.elapsed()
+        );
         assert_eq!(cloud.len(), 1024);
         cloud.validate().unwrap();
     }
@@ -546,7 +672,10 @@ mod tests {
         }
         for kind in CompositeKind::ALL {
             let m = composite(kind, 2);
-            eprintln!("{kind:?}: kept {:.4} of the uniform samples", kept_fraction(&m, 5000));
+            eprintln!(
+                "{kind:?}: kept {:.4} of the uniform samples",
+                kept_fraction(&m, 5000)
+            );
         }
     }
 

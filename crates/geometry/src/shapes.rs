@@ -48,7 +48,10 @@ fn positive(name: &'static str, value: f32) -> Result<f64, GeometryError> {
     if value.is_finite() && value > 0.0 {
         Ok(value as f64)
     } else {
-        Err(GeometryError::InvalidParameter { name, message: format!("must be finite and > 0, got {value}") })
+        Err(GeometryError::InvalidParameter {
+            name,
+            message: format!("must be finite and > 0, got {value}"),
+        })
     }
 }
 
@@ -56,7 +59,10 @@ fn non_negative(name: &'static str, value: f32) -> Result<f64, GeometryError> {
     if value.is_finite() && value >= 0.0 {
         Ok(value as f64)
     } else {
-        Err(GeometryError::InvalidParameter { name, message: format!("must be finite and ≥ 0, got {value}") })
+        Err(GeometryError::InvalidParameter {
+            name,
+            message: format!("must be finite and ≥ 0, got {value}"),
+        })
     }
 }
 
@@ -64,7 +70,10 @@ fn resolution(name: &'static str, value: u32, min: u32) -> Result<usize, Geometr
     if (min..=MAX_SEGMENTS).contains(&value) {
         Ok(value as usize)
     } else {
-        Err(GeometryError::InvalidParameter { name, message: format!("must be in {min}..={MAX_SEGMENTS}, got {value}") })
+        Err(GeometryError::InvalidParameter {
+            name,
+            message: format!("must be in {min}..={MAX_SEGMENTS}, got {value}"),
+        })
     }
 }
 
@@ -103,7 +112,10 @@ fn pole_grid(bottom: DVec3, rings: &[Vec<DVec3>], top: DVec3) -> Mesh {
     for j in 0..n {
         triangles.push([top_index, at(last, j), at(last, j + 1)]);
     }
-    Mesh { vertices, triangles }
+    Mesh {
+        vertices,
+        triangles,
+    }
 }
 
 /// A ring of `n` points at height `z` and radius `r` around the z axis, starting on +x.
@@ -138,22 +150,39 @@ fn box_raw(h: DVec3) -> Mesh {
         .collect();
     // Vertex i has x = bit 0, y = bit 1, z = bit 2. Each face is CCW seen from outside.
     let triangles = vec![
-        [0, 2, 3], [0, 3, 1], // -z
-        [4, 5, 7], [4, 7, 6], // +z
-        [0, 1, 5], [0, 5, 4], // -y
-        [2, 6, 7], [2, 7, 3], // +y
-        [0, 4, 6], [0, 6, 2], // -x
-        [1, 3, 7], [1, 7, 5], // +x
+        [0, 2, 3],
+        [0, 3, 1], // -z
+        [4, 5, 7],
+        [4, 7, 6], // +z
+        [0, 1, 5],
+        [0, 5, 4], // -y
+        [2, 6, 7],
+        [2, 7, 3], // +y
+        [0, 4, 6],
+        [0, 6, 2], // -x
+        [1, 3, 7],
+        [1, 7, 5], // +x
     ];
-    Mesh { vertices, triangles }
+    Mesh {
+        vertices,
+        triangles,
+    }
 }
 
 fn cylinder_raw(r: f64, hh: f64, n: usize) -> Mesh {
-    pole_grid(DVec3::new(0.0, 0.0, -hh), &[circle(r, -hh, n), circle(r, hh, n)], DVec3::new(0.0, 0.0, hh))
+    pole_grid(
+        DVec3::new(0.0, 0.0, -hh),
+        &[circle(r, -hh, n), circle(r, hh, n)],
+        DVec3::new(0.0, 0.0, hh),
+    )
 }
 
 fn cone_raw(r: f64, hh: f64, n: usize) -> Mesh {
-    pole_grid(DVec3::new(0.0, 0.0, -hh), &[circle(r, -hh, n)], DVec3::new(0.0, 0.0, hh))
+    pole_grid(
+        DVec3::new(0.0, 0.0, -hh),
+        &[circle(r, -hh, n)],
+        DVec3::new(0.0, 0.0, hh),
+    )
 }
 
 fn sphere_raw(r: f64, segments: usize, rings: usize) -> Mesh {
@@ -178,7 +207,11 @@ fn capsule_raw(r: f64, hh: f64, segments: usize, rings: usize) -> Mesh {
         let lat = (PI / 2.0) * k as f64 / rings as f64;
         loops.push(circle(r * lat.cos(), hh + r * lat.sin(), segments));
     }
-    pole_grid(DVec3::new(0.0, 0.0, -hh - r), &loops, DVec3::new(0.0, 0.0, hh + r))
+    pole_grid(
+        DVec3::new(0.0, 0.0, -hh - r),
+        &loops,
+        DVec3::new(0.0, 0.0, hh + r),
+    )
 }
 
 fn torus_raw(major: f64, minor: f64, nu: usize, nv: usize) -> Mesh {
@@ -201,7 +234,10 @@ fn torus_raw(major: f64, minor: f64, nu: usize, nv: usize) -> Mesh {
             triangles.push([a, c, d]);
         }
     }
-    Mesh { vertices, triangles }
+    Mesh {
+        vertices,
+        triangles,
+    }
 }
 
 fn superquadric_raw(a: DVec3, e1: f64, e2: f64, segments: usize, rings: usize) -> Mesh {
@@ -212,29 +248,62 @@ fn superquadric_raw(a: DVec3, e1: f64, e2: f64, segments: usize, rings: usize) -
             (0..segments)
                 .map(|j| {
                     let w = -PI + TAU * j as f64 / segments as f64;
-                    DVec3::new(a.x * ce * signed_pow(w.cos(), e2), a.y * ce * signed_pow(w.sin(), e2), a.z * se)
+                    DVec3::new(
+                        a.x * ce * signed_pow(w.cos(), e2),
+                        a.y * ce * signed_pow(w.sin(), e2),
+                        a.z * se,
+                    )
                 })
                 .collect()
         })
         .collect();
-    pole_grid(DVec3::new(0.0, 0.0, -a.z), &loops, DVec3::new(0.0, 0.0, a.z))
+    pole_grid(
+        DVec3::new(0.0, 0.0, -a.z),
+        &loops,
+        DVec3::new(0.0, 0.0, a.z),
+    )
 }
 
 fn icosphere_raw(r: f64, subdivisions: u32) -> Mesh {
     let t = (1.0 + 5f64.sqrt()) / 2.0;
     let mut points: Vec<DVec3> = [
-        (-1.0, t, 0.0), (1.0, t, 0.0), (-1.0, -t, 0.0), (1.0, -t, 0.0),
-        (0.0, -1.0, t), (0.0, 1.0, t), (0.0, -1.0, -t), (0.0, 1.0, -t),
-        (t, 0.0, -1.0), (t, 0.0, 1.0), (-t, 0.0, -1.0), (-t, 0.0, 1.0),
+        (-1.0, t, 0.0),
+        (1.0, t, 0.0),
+        (-1.0, -t, 0.0),
+        (1.0, -t, 0.0),
+        (0.0, -1.0, t),
+        (0.0, 1.0, t),
+        (0.0, -1.0, -t),
+        (0.0, 1.0, -t),
+        (t, 0.0, -1.0),
+        (t, 0.0, 1.0),
+        (-t, 0.0, -1.0),
+        (-t, 0.0, 1.0),
     ]
     .iter()
     .map(|&(x, y, z)| DVec3::new(x, y, z).normalize())
     .collect();
     let mut faces: Vec<[u32; 3]> = vec![
-        [0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11],
-        [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8],
-        [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9],
-        [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1],
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
     ];
     for _ in 0..subdivisions {
         let mut midpoints: HashMap<(u32, u32), u32> = HashMap::with_capacity(faces.len() * 3 / 2);
@@ -253,7 +322,10 @@ fn icosphere_raw(r: f64, subdivisions: u32) -> Mesh {
         }
         faces = next;
     }
-    Mesh { vertices: points.iter().map(|p| (*p * r).as_vec3()).collect(), triangles: faces }
+    Mesh {
+        vertices: points.iter().map(|p| (*p * r).as_vec3()).collect(),
+        triangles: faces,
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -293,7 +365,12 @@ pub fn cone(radius: f32, half_height: f32, segments: u32) -> Result<Mesh, Geomet
 /// A torus around the z axis: the tube of radius `minor` follows a circle of radius `major` in
 /// the xy-plane. Requires `major > minor > 0` (no self-intersection), `major_segments ≥ 3`
 /// around the z axis and `minor_segments ≥ 3` around the tube.
-pub fn torus(major: f32, minor: f32, major_segments: u32, minor_segments: u32) -> Result<Mesh, GeometryError> {
+pub fn torus(
+    major: f32,
+    minor: f32,
+    major_segments: u32,
+    minor_segments: u32,
+) -> Result<Mesh, GeometryError> {
     let big = positive("major", major)?;
     let small = positive("minor", minor)?;
     if small >= big {
@@ -311,7 +388,12 @@ pub fn torus(major: f32, minor: f32, major_segments: u32, minor_segments: u32) -
 /// closed by two hemispheres, so it spans z ∈ [-half_height − radius, half_height + radius].
 /// `half_height` may be 0 (a sphere). `segments ≥ 3` around the axis, `rings ≥ 1` latitude
 /// bands per hemisphere.
-pub fn capsule(radius: f32, half_height: f32, segments: u32, rings: u32) -> Result<Mesh, GeometryError> {
+pub fn capsule(
+    radius: f32,
+    half_height: f32,
+    segments: u32,
+    rings: u32,
+) -> Result<Mesh, GeometryError> {
     let r = positive("radius", radius)?;
     let hh = non_negative("half_height", half_height)?;
     let n = resolution("segments", segments, 3)?;
@@ -325,13 +407,26 @@ pub fn capsule(radius: f32, half_height: f32, segments: u32, rings: u32) -> Resu
 /// `e = 1` gives an ellipsoid, `e → 0` a box, `e = 2` an octahedron, `e > 2` pinched stars.
 /// Sampled on a uniform (η, ω) grid: `segments ≥ 3` around z, `rings ≥ 2` latitude bands
 /// (poles included as single vertices).
-pub fn superquadric(a: Vec3, e1: f32, e2: f32, segments: u32, rings: u32) -> Result<Mesh, GeometryError> {
-    let radii = DVec3::new(positive("a.x", a.x)?, positive("a.y", a.y)?, positive("a.z", a.z)?);
+pub fn superquadric(
+    a: Vec3,
+    e1: f32,
+    e2: f32,
+    segments: u32,
+    rings: u32,
+) -> Result<Mesh, GeometryError> {
+    let radii = DVec3::new(
+        positive("a.x", a.x)?,
+        positive("a.y", a.y)?,
+        positive("a.z", a.z)?,
+    );
     let e1 = positive("e1", e1)?;
     let e2 = positive("e2", e2)?;
     for (name, e) in [("e1", e1), ("e2", e2)] {
         if e > 10.0 {
-            return Err(GeometryError::InvalidParameter { name, message: format!("must be ≤ 10, got {e}") });
+            return Err(GeometryError::InvalidParameter {
+                name,
+                message: format!("must be ≤ 10, got {e}"),
+            });
         }
     }
     let n = resolution("segments", segments, 3)?;
@@ -423,7 +518,11 @@ fn along(dir: DVec3, centre: DVec3) -> Pose {
 /// A cylinder spanning the segment `p → q` with radius `r`.
 fn rod(into: &mut Mesh, p: DVec3, q: DVec3, r: f64) {
     let half = 0.5 * (q - p).length();
-    put(into, cylinder_raw(r, half, COMPOSITE_SEGMENTS), along(q - p, 0.5 * (p + q)));
+    put(
+        into,
+        cylinder_raw(r, half, COMPOSITE_SEGMENTS),
+        along(q - p, 0.5 * (p + q)),
+    );
 }
 
 fn range(rng: &mut ChaCha8Rng, lo: f64, hi: f64) -> f64 {
@@ -454,9 +553,24 @@ fn build_table(rng: &mut ChaCha8Rng) -> Mesh {
     if rng.random_bool(0.4) {
         // A stretcher between the legs along x.
         let z = range(rng, 0.15, 0.4) * h;
-        rod(&mut m, DVec3::new(-lx, 0.0, z), DVec3::new(lx, 0.0, z), 0.6 * leg);
-        rod(&mut m, DVec3::new(-lx, -ly, z), DVec3::new(-lx, ly, z), 0.6 * leg);
-        rod(&mut m, DVec3::new(lx, -ly, z), DVec3::new(lx, ly, z), 0.6 * leg);
+        rod(
+            &mut m,
+            DVec3::new(-lx, 0.0, z),
+            DVec3::new(lx, 0.0, z),
+            0.6 * leg,
+        );
+        rod(
+            &mut m,
+            DVec3::new(-lx, -ly, z),
+            DVec3::new(-lx, ly, z),
+            0.6 * leg,
+        );
+        rod(
+            &mut m,
+            DVec3::new(lx, -ly, z),
+            DVec3::new(lx, ly, z),
+            0.6 * leg,
+        );
     }
     m
 }
@@ -484,15 +598,28 @@ fn build_chair(rng: &mut ChaCha8Rng) -> Mesh {
     let back_t = range(rng, 0.015, 0.03);
     let tilt = range(rng, 0.0, 0.25);
     let back = box_raw(DVec3::new(w, back_t, 0.5 * back_h));
-    let centre = DVec3::new(0.0, -d + back_t - 0.5 * back_h * tilt.sin(), seat_z + 0.5 * back_h * tilt.cos());
+    let centre = DVec3::new(
+        0.0,
+        -d + back_t - 0.5 * back_h * tilt.sin(),
+        seat_z + 0.5 * back_h * tilt.cos(),
+    );
     put(&mut m, back, Pose::from_axis_angle(DVec3::X, tilt, centre));
     if rng.random_bool(0.35) {
         // Armrests: posts and bars on both sides.
         let arm_h = range(rng, 0.12, 0.25);
         for sx in [-1.0, 1.0] {
             let x = sx * (w - leg);
-            rod(&mut m, DVec3::new(x, d - 2.0 * leg, seat_z), DVec3::new(x, d - 2.0 * leg, seat_z + arm_h), leg);
-            put(&mut m, box_raw(DVec3::new(1.5 * leg, d, leg)), at(x, 0.0, seat_z + arm_h));
+            rod(
+                &mut m,
+                DVec3::new(x, d - 2.0 * leg, seat_z),
+                DVec3::new(x, d - 2.0 * leg, seat_z + arm_h),
+                leg,
+            );
+            put(
+                &mut m,
+                box_raw(DVec3::new(1.5 * leg, d, leg)),
+                at(x, 0.0, seat_z + arm_h),
+            );
         }
     }
     m
@@ -502,7 +629,11 @@ fn build_mug(rng: &mut ChaCha8Rng) -> Mesh {
     let mut m = Mesh::default();
     let r = range(rng, 0.3, 0.5);
     let hh = range(rng, 0.35, 0.6);
-    put(&mut m, cylinder_raw(r, hh, 2 * COMPOSITE_SEGMENTS), Pose::IDENTITY);
+    put(
+        &mut m,
+        cylinder_raw(r, hh, 2 * COMPOSITE_SEGMENTS),
+        Pose::IDENTITY,
+    );
     // Handle: a torus in the xz-plane (axis along y), its inner part inside the body.
     let big = range(rng, 0.45, 0.8) * hh;
     let small = range(rng, 0.12, 0.25) * big;
@@ -510,7 +641,15 @@ fn build_mug(rng: &mut ChaCha8Rng) -> Mesh {
     let handle = torus_raw(big, small, COMPOSITE_SEGMENTS, COMPOSITE_SEGMENTS / 2);
     let z = range(rng, -0.2, 0.2) * hh;
     // Its inner side reaches `sink·big` inside the body wall.
-    put(&mut m, handle, Pose::from_axis_angle(DVec3::X, PI / 2.0, DVec3::new(r + big * (1.0 - sink), 0.0, z)));
+    put(
+        &mut m,
+        handle,
+        Pose::from_axis_angle(
+            DVec3::X,
+            PI / 2.0,
+            DVec3::new(r + big * (1.0 - sink), 0.0, z),
+        ),
+    );
     if rng.random_bool(0.5) {
         // A foot ring.
         let foot = cylinder_raw(r * range(rng, 0.7, 0.95), 0.04 * hh, 2 * COMPOSITE_SEGMENTS);
@@ -526,24 +665,48 @@ fn build_bracket(rng: &mut ChaCha8Rng) -> Mesh {
     let width = range(rng, 0.15, 0.4);
     let t = range(rng, 0.02, 0.06);
     // Base plate along +x, upright plate along +z; they share the corner region.
-    put(&mut m, box_raw(DVec3::new(0.5 * len_x, width, t)), at(0.5 * len_x, 0.0, t));
-    put(&mut m, box_raw(DVec3::new(t, width, 0.5 * len_z)), at(t, 0.0, 0.5 * len_z));
+    put(
+        &mut m,
+        box_raw(DVec3::new(0.5 * len_x, width, t)),
+        at(0.5 * len_x, 0.0, t),
+    );
+    put(
+        &mut m,
+        box_raw(DVec3::new(t, width, 0.5 * len_z)),
+        at(t, 0.0, 0.5 * len_z),
+    );
     // Diagonal gusset in the middle.
     if rng.random_bool(0.7) {
         let g = range(rng, 0.3, 0.6) * len_x.min(len_z);
         let diag = std::f64::consts::SQRT_2 * g;
         let gusset = box_raw(DVec3::new(0.5 * diag, 0.3 * t + 0.01, t));
-        put(&mut m, gusset, Pose::from_axis_angle(DVec3::Y, -PI / 4.0, DVec3::new(0.5 * g, 0.0, 0.5 * g)));
+        put(
+            &mut m,
+            gusset,
+            Pose::from_axis_angle(DVec3::Y, -PI / 4.0, DVec3::new(0.5 * g, 0.0, 0.5 * g)),
+        );
     }
     // Bolt heads: short cylinders through the plates.
     let bolts = rng.random_range(1..=3);
     let bolt_r = range(rng, 0.02, 0.045);
     for i in 0..bolts {
         let f = (i as f64 + 1.0) / (bolts as f64 + 1.0);
-        let y = if bolts == 1 { 0.0 } else { range(rng, -0.5, 0.5) * width };
-        put(&mut m, cylinder_raw(bolt_r, 1.6 * t, COMPOSITE_SEGMENTS), at(0.3 * len_x + 0.6 * len_x * f, y, t));
+        let y = if bolts == 1 {
+            0.0
+        } else {
+            range(rng, -0.5, 0.5) * width
+        };
+        put(
+            &mut m,
+            cylinder_raw(bolt_r, 1.6 * t, COMPOSITE_SEGMENTS),
+            at(0.3 * len_x + 0.6 * len_x * f, y, t),
+        );
         let bolt = cylinder_raw(bolt_r, 1.6 * t, COMPOSITE_SEGMENTS);
-        put(&mut m, bolt, along(DVec3::X, DVec3::new(t, -y, 0.3 * len_z + 0.6 * len_z * f)));
+        put(
+            &mut m,
+            bolt,
+            along(DVec3::X, DVec3::new(t, -y, 0.3 * len_z + 0.6 * len_z * f)),
+        );
     }
     m
 }
@@ -552,28 +715,50 @@ fn build_lamp(rng: &mut ChaCha8Rng) -> Mesh {
     let mut m = Mesh::default();
     let base_r = range(rng, 0.15, 0.3);
     let base_t = range(rng, 0.02, 0.05);
-    put(&mut m, cylinder_raw(base_r, base_t, 2 * COMPOSITE_SEGMENTS), at(0.0, 0.0, base_t));
+    put(
+        &mut m,
+        cylinder_raw(base_r, base_t, 2 * COMPOSITE_SEGMENTS),
+        at(0.0, 0.0, base_t),
+    );
     let pole_r = range(rng, 0.012, 0.03);
     let pole_h = range(rng, 0.4, 0.9);
     let top = DVec3::new(0.0, 0.0, pole_h);
     rod(&mut m, DVec3::new(0.0, 0.0, base_t), top, pole_r);
-    put(&mut m, sphere_raw(1.8 * pole_r, 16, 8), Pose::from_translation(top));
+    put(
+        &mut m,
+        sphere_raw(1.8 * pole_r, 16, 8),
+        Pose::from_translation(top),
+    );
     // Arm: tilted up or down from the pole top.
     let arm_len = range(rng, 0.15, 0.4);
     let arm_angle = range(rng, -0.6, 0.6);
     let azimuth = range(rng, 0.0, TAU);
-    let dir = DVec3::new(arm_angle.cos() * azimuth.cos(), arm_angle.cos() * azimuth.sin(), arm_angle.sin());
+    let dir = DVec3::new(
+        arm_angle.cos() * azimuth.cos(),
+        arm_angle.cos() * azimuth.sin(),
+        arm_angle.sin(),
+    );
     let end = top + arm_len * dir;
     rod(&mut m, top, end, 0.8 * pole_r);
     // Shade: a cone opening downwards, apex near the arm end (inside the joint sphere).
     let shade_r = range(rng, 0.08, 0.2);
     let shade_hh = range(rng, 0.06, 0.15);
     let tilt = range(rng, 0.0, 0.5);
-    let shade_dir = (DVec3::new(dir.x, dir.y, 0.0).normalize_or_zero() * tilt.sin() - DVec3::Z * tilt.cos()).normalize();
+    let shade_dir = (DVec3::new(dir.x, dir.y, 0.0).normalize_or_zero() * tilt.sin()
+        - DVec3::Z * tilt.cos())
+    .normalize();
     // The cone's +z axis (apex side) points against the opening direction.
     let shade_centre = end + shade_dir * (shade_hh * 0.9);
-    put(&mut m, cone_raw(shade_r, shade_hh, COMPOSITE_SEGMENTS), along(-shade_dir, shade_centre));
-    put(&mut m, sphere_raw(1.5 * pole_r, 16, 8), Pose::from_translation(end));
+    put(
+        &mut m,
+        cone_raw(shade_r, shade_hh, COMPOSITE_SEGMENTS),
+        along(-shade_dir, shade_centre),
+    );
+    put(
+        &mut m,
+        sphere_raw(1.5 * pole_r, 16, 8),
+        Pose::from_translation(end),
+    );
     m
 }
 
@@ -584,21 +769,41 @@ fn build_bottle(rng: &mut ChaCha8Rng) -> Mesh {
     if rng.random_bool(0.3) {
         // Rounded body.
         let hh = (body_hh - r).max(0.05);
-        put(&mut m, capsule_raw(r, hh, 2 * COMPOSITE_SEGMENTS, 8), at(0.0, 0.0, hh + r));
+        put(
+            &mut m,
+            capsule_raw(r, hh, 2 * COMPOSITE_SEGMENTS, 8),
+            at(0.0, 0.0, hh + r),
+        );
     } else {
-        put(&mut m, cylinder_raw(r, body_hh, 2 * COMPOSITE_SEGMENTS), at(0.0, 0.0, body_hh));
+        put(
+            &mut m,
+            cylinder_raw(r, body_hh, 2 * COMPOSITE_SEGMENTS),
+            at(0.0, 0.0, body_hh),
+        );
     }
     let body_top = 2.0 * body_hh;
     // Shoulder: a cone on the body (its lowest part sunk into it).
     let shoulder_hh = range(rng, 0.08, 0.25);
-    put(&mut m, cone_raw(r, shoulder_hh, 2 * COMPOSITE_SEGMENTS), at(0.0, 0.0, body_top + shoulder_hh - 0.01));
+    put(
+        &mut m,
+        cone_raw(r, shoulder_hh, 2 * COMPOSITE_SEGMENTS),
+        at(0.0, 0.0, body_top + shoulder_hh - 0.01),
+    );
     // Neck through the cone's apex, and a cap.
     let neck_r = range(rng, 0.25, 0.45) * r;
     let neck_hh = range(rng, 0.05, 0.15);
     let neck_z = body_top + 2.0 * shoulder_hh - 0.3 * shoulder_hh + neck_hh;
-    put(&mut m, cylinder_raw(neck_r, neck_hh + 0.3 * shoulder_hh, COMPOSITE_SEGMENTS), at(0.0, 0.0, neck_z - 0.3 * shoulder_hh));
+    put(
+        &mut m,
+        cylinder_raw(neck_r, neck_hh + 0.3 * shoulder_hh, COMPOSITE_SEGMENTS),
+        at(0.0, 0.0, neck_z - 0.3 * shoulder_hh),
+    );
     let cap_hh = range(rng, 0.02, 0.05);
-    put(&mut m, cylinder_raw(neck_r * 1.15, cap_hh, COMPOSITE_SEGMENTS), at(0.0, 0.0, neck_z + neck_hh));
+    put(
+        &mut m,
+        cylinder_raw(neck_r * 1.15, cap_hh, COMPOSITE_SEGMENTS),
+        at(0.0, 0.0, neck_z + neck_hh),
+    );
     m
 }
 
@@ -631,7 +836,11 @@ pub fn composite(kind: CompositeKind, seed: u64) -> Mesh {
 /// Every deformation is an orientation-preserving bijection of space, so the surface stays
 /// closed, outward-oriented and free of self-intersections.
 fn deformed_superquadric(rng: &mut ChaCha8Rng) -> Mesh {
-    let a = DVec3::new(range(rng, 0.3, 1.0), range(rng, 0.3, 1.0), range(rng, 0.3, 1.0));
+    let a = DVec3::new(
+        range(rng, 0.3, 1.0),
+        range(rng, 0.3, 1.0),
+        range(rng, 0.3, 1.0),
+    );
     let (e1, e2) = (range(rng, 0.25, 1.6), range(rng, 0.25, 1.6));
     let mut m = superquadric_raw(a, e1, e2, 64, 32);
     let taper = range(rng, -0.6, 0.6); // scale factor 1 + taper·z/a.z ∈ [0.4, 1.6]
@@ -662,10 +871,18 @@ fn blob(rng: &mut ChaCha8Rng) -> Mesh {
             (centre, range(rng, -0.35, 0.7), range(rng, 0.1, 0.5))
         })
         .collect();
-    let scale = DVec3::new(range(rng, 0.5, 1.0), range(rng, 0.5, 1.0), range(rng, 0.5, 1.0));
+    let scale = DVec3::new(
+        range(rng, 0.5, 1.0),
+        range(rng, 0.5, 1.0),
+        range(rng, 0.5, 1.0),
+    );
     for v in &mut m.vertices {
         let d = v.as_dvec3().normalize();
-        let r: f64 = 1.0 + bumps.iter().map(|(c, amp, w)| amp * (-(1.0 - d.dot(*c)) / w).exp()).sum::<f64>();
+        let r: f64 = 1.0
+            + bumps
+                .iter()
+                .map(|(c, amp, w)| amp * (-(1.0 - d.dot(*c)) / w).exp())
+                .sum::<f64>();
         *v = (d * r.max(0.3) * scale).as_vec3();
     }
     m
@@ -680,7 +897,9 @@ pub fn random_object(seed: u64) -> Mesh {
     let sub_seed: u64 = rng.random();
     match pick {
         0..=5 => composite(CompositeKind::ALL[pick], sub_seed),
-        6 => normalised(deformed_superquadric(&mut ChaCha8Rng::seed_from_u64(sub_seed))),
+        6 => normalised(deformed_superquadric(&mut ChaCha8Rng::seed_from_u64(
+            sub_seed,
+        ))),
         _ => normalised(blob(&mut ChaCha8Rng::seed_from_u64(sub_seed))),
     }
 }
@@ -700,7 +919,11 @@ mod tests {
         }
         for (&(a, b), &n) in &edges {
             assert_eq!(n, 1, "{what}: directed edge {a}→{b} used {n} times");
-            assert_eq!(edges.get(&(b, a)), Some(&1), "{what}: edge {a}→{b} has no opposite");
+            assert_eq!(
+                edges.get(&(b, a)),
+                Some(&1),
+                "{what}: edge {a}→{b} has no opposite"
+            );
         }
         m.validate().unwrap();
     }
@@ -716,13 +939,22 @@ mod tests {
 
     fn assert_volume(m: &Mesh, expected: f64, rel: f64, what: &str) {
         let v = signed_volume(m);
-        assert!(v > 0.0, "{what}: signed volume {v} ≤ 0 (inward orientation)");
-        assert!((v - expected).abs() <= rel * expected, "{what}: volume {v} vs analytic {expected} (rel tol {rel})");
+        assert!(
+            v > 0.0,
+            "{what}: signed volume {v} ≤ 0 (inward orientation)"
+        );
+        assert!(
+            (v - expected).abs() <= rel * expected,
+            "{what}: volume {v} vs analytic {expected} (rel tol {rel})"
+        );
     }
 
     fn assert_bounds(m: &Mesh, min: DVec3, max: DVec3, tol: f64, what: &str) {
         let b = m.bounds().unwrap();
-        assert!(b.min.abs_diff_eq(min, tol) && b.max.abs_diff_eq(max, tol), "{what}: bounds {b:?} vs {min}..{max}");
+        assert!(
+            b.min.abs_diff_eq(min, tol) && b.max.abs_diff_eq(max, tol),
+            "{what}: bounds {b:?} vs {min}..{max}"
+        );
     }
 
     #[test]
@@ -734,7 +966,10 @@ mod tests {
             ("torus", torus(2.0, 0.5, 12, 5).unwrap()),
             ("capsule", capsule(0.5, 1.0, 9, 3).unwrap()),
             ("capsule h=0", capsule(0.5, 0.0, 9, 1).unwrap()),
-            ("superquadric", superquadric(Vec3::new(1.0, 2.0, 0.5), 0.3, 1.7, 16, 9).unwrap()),
+            (
+                "superquadric",
+                superquadric(Vec3::new(1.0, 2.0, 0.5), 0.3, 1.7, 16, 9).unwrap(),
+            ),
             ("sphere", sphere(1.0, 5, 2).unwrap()),
             ("icosphere 0", icosphere(1.0, 0).unwrap()),
             ("icosphere 3", icosphere(1.0, 3).unwrap()),
@@ -747,7 +982,10 @@ mod tests {
             if *what != "torus" && !what.starts_with("superquadric") {
                 for (i, n) in m.face_normals().iter().enumerate() {
                     let [a, b, c] = m.triangle(i);
-                    assert!(n.as_dvec3().dot((a + b + c) / 3.0) > 0.0, "{what}: face {i} points inwards");
+                    assert!(
+                        n.as_dvec3().dot((a + b + c) / 3.0) > 0.0,
+                        "{what}: face {i} points inwards"
+                    );
                 }
             }
         }
@@ -757,13 +995,38 @@ mod tests {
 
     #[test]
     fn volumes_match_analytic_values() {
-        assert_volume(&box_mesh(Vec3::new(1.0, 2.0, 3.0)).unwrap(), 48.0, 1e-12, "box");
+        assert_volume(
+            &box_mesh(Vec3::new(1.0, 2.0, 3.0)).unwrap(),
+            48.0,
+            1e-12,
+            "box",
+        );
         assert_volume(&cylinder(1.0, 2.0, 64).unwrap(), PI * 4.0, 0.01, "cylinder");
         assert_volume(&cone(1.0, 1.5, 64).unwrap(), PI * 3.0 / 3.0, 0.01, "cone");
-        assert_volume(&sphere(2.0, 64, 32).unwrap(), 4.0 / 3.0 * PI * 8.0, 0.01, "uv sphere");
-        assert_volume(&icosphere(2.0, 4).unwrap(), 4.0 / 3.0 * PI * 8.0, 0.01, "icosphere");
-        assert_volume(&torus(2.0, 0.5, 64, 32).unwrap(), 2.0 * PI * PI * 2.0 * 0.25, 0.02, "torus");
-        assert_volume(&capsule(0.5, 1.0, 64, 16).unwrap(), PI * 0.25 * 2.0 + 4.0 / 3.0 * PI * 0.125, 0.01, "capsule");
+        assert_volume(
+            &sphere(2.0, 64, 32).unwrap(),
+            4.0 / 3.0 * PI * 8.0,
+            0.01,
+            "uv sphere",
+        );
+        assert_volume(
+            &icosphere(2.0, 4).unwrap(),
+            4.0 / 3.0 * PI * 8.0,
+            0.01,
+            "icosphere",
+        );
+        assert_volume(
+            &torus(2.0, 0.5, 64, 32).unwrap(),
+            2.0 * PI * PI * 2.0 * 0.25,
+            0.02,
+            "torus",
+        );
+        assert_volume(
+            &capsule(0.5, 1.0, 64, 16).unwrap(),
+            PI * 0.25 * 2.0 + 4.0 / 3.0 * PI * 0.125,
+            0.01,
+            "capsule",
+        );
         // Superquadric with e1 = e2 = 1 is an ellipsoid.
         assert_volume(
             &superquadric(Vec3::new(1.0, 2.0, 0.5), 1.0, 1.0, 64, 32).unwrap(),
@@ -773,21 +1036,66 @@ mod tests {
         );
         // Small exponents approach the box 2a × 2b × 2c; e = 0.1: within 10 %.
         let v = signed_volume(&superquadric(Vec3::new(1.0, 2.0, 0.5), 0.1, 0.1, 128, 64).unwrap());
-        assert!(v > 0.85 * 8.0 && v < 8.0, "near-box superquadric volume {v}");
+        assert!(
+            v > 0.85 * 8.0 && v < 8.0,
+            "near-box superquadric volume {v}"
+        );
     }
 
     #[test]
     fn bounding_boxes_are_as_documented() {
         let h = DVec3::new(1.0, 2.0, 3.0);
         assert_bounds(&box_mesh(h.as_vec3()).unwrap(), -h, h, 0.0, "box");
-        assert_bounds(&cylinder(1.0, 2.0, 64).unwrap(), DVec3::new(-1.0, -1.0, -2.0), DVec3::new(1.0, 1.0, 2.0), 2e-3, "cylinder");
-        assert_bounds(&cone(1.0, 2.0, 64).unwrap(), DVec3::new(-1.0, -1.0, -2.0), DVec3::new(1.0, 1.0, 2.0), 2e-3, "cone");
-        assert_bounds(&torus(2.0, 0.5, 64, 32).unwrap(), DVec3::new(-2.5, -2.5, -0.5), DVec3::new(2.5, 2.5, 0.5), 2e-3, "torus");
-        assert_bounds(&capsule(0.5, 1.0, 64, 16).unwrap(), DVec3::new(-0.5, -0.5, -1.5), DVec3::new(0.5, 0.5, 1.5), 2e-3, "capsule");
-        assert_bounds(&sphere(2.0, 64, 32).unwrap(), DVec3::splat(-2.0), DVec3::splat(2.0), 5e-3, "sphere");
-        assert_bounds(&icosphere(2.0, 4).unwrap(), DVec3::splat(-2.0), DVec3::splat(2.0), 0.02, "icosphere");
+        assert_bounds(
+            &cylinder(1.0, 2.0, 64).unwrap(),
+            DVec3::new(-1.0, -1.0, -2.0),
+            DVec3::new(1.0, 1.0, 2.0),
+            2e-3,
+            "cylinder",
+        );
+        assert_bounds(
+            &cone(1.0, 2.0, 64).unwrap(),
+            DVec3::new(-1.0, -1.0, -2.0),
+            DVec3::new(1.0, 1.0, 2.0),
+            2e-3,
+            "cone",
+        );
+        assert_bounds(
+            &torus(2.0, 0.5, 64, 32).unwrap(),
+            DVec3::new(-2.5, -2.5, -0.5),
+            DVec3::new(2.5, 2.5, 0.5),
+            2e-3,
+            "torus",
+        );
+        assert_bounds(
+            &capsule(0.5, 1.0, 64, 16).unwrap(),
+            DVec3::new(-0.5, -0.5, -1.5),
+            DVec3::new(0.5, 0.5, 1.5),
+            2e-3,
+            "capsule",
+        );
+        assert_bounds(
+            &sphere(2.0, 64, 32).unwrap(),
+            DVec3::splat(-2.0),
+            DVec3::splat(2.0),
+            5e-3,
+            "sphere",
+        );
+        assert_bounds(
+            &icosphere(2.0, 4).unwrap(),
+            DVec3::splat(-2.0),
+            DVec3::splat(2.0),
+            0.02,
+            "icosphere",
+        );
         let a = DVec3::new(1.0, 2.0, 0.5);
-        assert_bounds(&superquadric(a.as_vec3(), 0.5, 0.5, 64, 32).unwrap(), -a, a, 5e-3, "superquadric");
+        assert_bounds(
+            &superquadric(a.as_vec3(), 0.5, 0.5, 64, 32).unwrap(),
+            -a,
+            a,
+            5e-3,
+            "superquadric",
+        );
         for v in icosphere(2.0, 2).unwrap().vertices {
             assert!((v.length() - 2.0).abs() < 1e-5);
         }
@@ -811,7 +1119,10 @@ mod tests {
         bad(capsule(1.0, 1.0, 8, 0), "rings");
         bad(superquadric(Vec3::ONE, 0.0, 1.0, 8, 8), "e1");
         bad(superquadric(Vec3::ONE, 1.0, 11.0, 8, 8), "e2");
-        bad(superquadric(Vec3::new(1.0, 1.0, -1.0), 1.0, 1.0, 8, 8), "a.z");
+        bad(
+            superquadric(Vec3::new(1.0, 1.0, -1.0), 1.0, 1.0, 8, 8),
+            "a.z",
+        );
         bad(sphere(1.0, 8, 1), "rings");
         bad(sphere(1.0, MAX_SEGMENTS + 1, 8), "segments");
         bad(icosphere(0.0, 1), "radius");
@@ -823,14 +1134,30 @@ mod tests {
         for kind in CompositeKind::ALL {
             for seed in 0..8 {
                 let m = composite(kind, seed);
-                assert_eq!(m, composite(kind, seed), "{kind:?} {seed} not deterministic");
+                assert_eq!(
+                    m,
+                    composite(kind, seed),
+                    "{kind:?} {seed} not deterministic"
+                );
                 assert_closed(&m, &format!("{kind:?} {seed}"));
                 assert!(signed_volume(&m) > 0.0);
                 let b = m.bounds().unwrap();
-                assert!(b.centre().abs().max_element() < 1e-5, "{kind:?} {seed}: centre {}", b.centre());
-                assert!((b.extent().max_element() - 2.0).abs() < 1e-5, "{kind:?} {seed}: extent {}", b.extent());
+                assert!(
+                    b.centre().abs().max_element() < 1e-5,
+                    "{kind:?} {seed}: centre {}",
+                    b.centre()
+                );
+                assert!(
+                    (b.extent().max_element() - 2.0).abs() < 1e-5,
+                    "{kind:?} {seed}: extent {}",
+                    b.extent()
+                );
             }
-            assert_ne!(composite(kind, 1), composite(kind, 2), "{kind:?}: seeds give the same mesh");
+            assert_ne!(
+                composite(kind, 1),
+                composite(kind, 2),
+                "{kind:?}: seeds give the same mesh"
+            );
         }
     }
 
@@ -846,7 +1173,11 @@ mod tests {
             assert!((b.extent().max_element() - 2.0).abs() < 1e-5);
             sizes.insert(m.triangles.len());
         }
-        assert!(sizes.len() >= 8, "only {} distinct triangle counts in 40 objects", sizes.len());
+        assert!(
+            sizes.len() >= 8,
+            "only {} distinct triangle counts in 40 objects",
+            sizes.len()
+        );
     }
 
     #[test]

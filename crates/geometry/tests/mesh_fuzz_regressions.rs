@@ -12,7 +12,9 @@ use ic_geometry::io::{read_gltf, read_obj, read_off, read_ply, read_ply_points};
 use proptest::prelude::*;
 
 fn fixture(name: &str) -> Vec<u8> {
-    let path: PathBuf = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/meshes").join(name);
+    let path: PathBuf = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../fixtures/meshes")
+        .join(name);
     std::fs::read(path).unwrap()
 }
 
@@ -30,21 +32,47 @@ fn run_all_readers(bytes: &[u8]) -> Vec<String> {
     check("f.off", read_off(bytes, Path::new("f.off")).map(drop));
     check("f.obj", read_obj(bytes, Path::new("f.obj")).map(drop));
     check("f.ply", read_ply(bytes, Path::new("f.ply")).map(drop));
-    check("p.ply", read_ply_points(bytes, Path::new("p.ply")).map(drop));
-    check("f.glb", read_gltf(bytes, None, Path::new("f.glb")).map(drop));
+    check(
+        "p.ply",
+        read_ply_points(bytes, Path::new("p.ply")).map(drop),
+    );
+    check(
+        "f.glb",
+        read_gltf(bytes, None, Path::new("f.glb")).map(drop),
+    );
     errors
 }
 
 #[derive(Clone, Debug)]
 enum Mutation {
-    Flip { at: usize, mask: u8 },
-    Set { at: usize, byte: u8 },
-    Insert { at: usize, byte: u8 },
-    Delete { at: usize, len: usize },
-    Truncate { at: usize },
-    Duplicate { at: usize, len: usize },
+    Flip {
+        at: usize,
+        mask: u8,
+    },
+    Set {
+        at: usize,
+        byte: u8,
+    },
+    Insert {
+        at: usize,
+        byte: u8,
+    },
+    Delete {
+        at: usize,
+        len: usize,
+    },
+    Truncate {
+        at: usize,
+    },
+    Duplicate {
+        at: usize,
+        len: usize,
+    },
     /// Replaces the number token around `at` with an awkward one.
-    Token { at: usize, which: usize },
+    Token {
+        at: usize,
+        which: usize,
+    },
 }
 
 const AWKWARD: [&str; 14] = [
@@ -67,12 +95,12 @@ const AWKWARD: [&str; 14] = [
 fn mutation() -> impl Strategy<Value = Mutation> {
     let at = any::<usize>();
     prop_oneof![
-        (at.clone(), 1u8..).prop_map(|(at, mask)| Mutation::Flip { at, mask }),
-        (at.clone(), any::<u8>()).prop_map(|(at, byte)| Mutation::Set { at, byte }),
-        (at.clone(), any::<u8>()).prop_map(|(at, byte)| Mutation::Insert { at, byte }),
-        (at.clone(), 1usize..16).prop_map(|(at, len)| Mutation::Delete { at, len }),
-        at.clone().prop_map(|at| Mutation::Truncate { at }),
-        (at.clone(), 1usize..64).prop_map(|(at, len)| Mutation::Duplicate { at, len }),
+        (at, 1u8..).prop_map(|(at, mask)| Mutation::Flip { at, mask }),
+        (at, any::<u8>()).prop_map(|(at, byte)| Mutation::Set { at, byte }),
+        (at, any::<u8>()).prop_map(|(at, byte)| Mutation::Insert { at, byte }),
+        (at, 1usize..16).prop_map(|(at, len)| Mutation::Delete { at, len }),
+        at.prop_map(|at| Mutation::Truncate { at }),
+        (at, 1usize..64).prop_map(|(at, len)| Mutation::Duplicate { at, len }),
         (at, 0..AWKWARD.len()).prop_map(|(at, which)| Mutation::Token { at, which }),
     ]
 }
@@ -130,8 +158,15 @@ const FIXTURES: [&str; 7] = [
 
 /// 256 cases per property by default (fast); set `IC_FUZZ_CASES` for a longer campaign.
 fn config() -> ProptestConfig {
-    let cases = std::env::var("IC_FUZZ_CASES").ok().and_then(|s| s.parse().ok()).unwrap_or(256);
-    ProptestConfig { cases, failure_persistence: None, ..ProptestConfig::default() }
+    let cases = std::env::var("IC_FUZZ_CASES")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(256);
+    ProptestConfig {
+        cases,
+        failure_persistence: None,
+        ..ProptestConfig::default()
+    }
 }
 
 proptest! {
@@ -252,7 +287,10 @@ fn gltf_position_accessor_index_out_of_range_is_an_error_not_a_panic() {
     json["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = 7.into();
     let bytes = serde_json::to_vec(&json).unwrap();
     let e = read_gltf(&bytes, None, Path::new("f.gltf")).unwrap_err();
-    assert!(e.to_string().contains("POSITION refers to accessor 7"), "{e}");
+    assert!(
+        e.to_string().contains("POSITION refers to accessor 7"),
+        "{e}"
+    );
     // With no accessors at all.
     json["accessors"] = serde_json::json!([]);
     let bytes = serde_json::to_vec(&json).unwrap();
@@ -269,7 +307,10 @@ fn obj_relative_texcoord_index_before_any_texcoord_is_an_error_not_an_overflow()
         other => panic!("{other:?}"),
     }
     let text = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//-9223372036854775808 2//1 3//1\n";
-    assert!(matches!(read_obj(&text[..], Path::new("f.obj")), Err(MeshError::Parse { line: 5, .. })));
+    assert!(matches!(
+        read_obj(&text[..], Path::new("f.obj")),
+        Err(MeshError::Parse { line: 5, .. })
+    ));
 }
 
 #[test]
@@ -277,7 +318,11 @@ fn off_header_count_larger_than_file_is_an_error_not_an_allocation() {
     let text = b"OFF\n4000000000000 4000000000000 0\n0 0 0\n";
     let e = read_off(&text[..], Path::new("f.off")).unwrap_err();
     assert!(matches!(e, MeshError::Parse { line: 3, .. }), "{e:?}");
-    assert!(e.to_string().contains("ends after 1 of 4000000000000 vertices"), "{e}");
+    assert!(
+        e.to_string()
+            .contains("ends after 1 of 4000000000000 vertices"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -289,7 +334,8 @@ fn off_face_vertex_count_larger_than_the_line_is_an_error_not_an_allocation() {
 
 #[test]
 fn ply_header_count_larger_than_file_is_an_error_not_an_allocation() {
-    let text = b"ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\nproperty float x\n\
+    let text =
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\nproperty float x\n\
 property float y\nproperty float z\nend_header\n\0\0\0\0";
     let e = read_ply_points(&text[..], Path::new("f.ply")).unwrap_err();
     assert!(e.to_string().contains("cannot hold"), "{e}");
@@ -302,7 +348,10 @@ fn ply_binary_element_without_properties_is_an_error_not_an_endless_loop() {
     let text = b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\n\
 property float y\nproperty float z\nelement face 18446744073709551615\nend_header\n\0\0\0\0\0\0\0\0\0\0\0\0";
     let e = read_ply(&text[..], Path::new("f.ply")).unwrap_err();
-    assert!(e.to_string().contains("no properties") || e.to_string().contains("cannot hold"), "{e}");
+    assert!(
+        e.to_string().contains("no properties") || e.to_string().contains("cannot hold"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -336,7 +385,10 @@ fn gltf_node_cycle_is_an_error_not_an_endless_traversal() {
 fn glb_truncated_binary_chunk_is_an_error() {
     let bytes = fixture("two_nodes.glb");
     for cut in [0, 4, 12, 20, bytes.len() / 2, bytes.len() - 1] {
-        assert!(read_gltf(&bytes[..cut], None, Path::new("f.glb")).is_err(), "cut at {cut}");
+        assert!(
+            read_gltf(&bytes[..cut], None, Path::new("f.glb")).is_err(),
+            "cut at {cut}"
+        );
     }
     assert!(read_gltf(&bytes, None, Path::new("f.glb")).is_ok());
 }

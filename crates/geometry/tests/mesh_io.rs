@@ -4,13 +4,15 @@ use std::path::{Path, PathBuf};
 
 use glam::Vec3;
 use ic_geometry::io::{
-    PlyEncoding, load_mesh, read_gltf, read_obj, read_off, read_ply, read_ply_cloud, read_ply_points,
-    write_mesh_ply, write_mesh_ply_to, write_ply, write_ply_to,
+    PlyEncoding, load_mesh, read_gltf, read_obj, read_off, read_ply, read_ply_cloud,
+    read_ply_points, write_mesh_ply, write_mesh_ply_to, write_ply, write_ply_to,
 };
 use ic_geometry::{Mesh, MeshDataError, MeshError, PointCloud};
 
 fn fixture(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/meshes").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../fixtures/meshes")
+        .join(name)
 }
 
 fn bits(v: &[Vec3]) -> Vec<[u32; 3]> {
@@ -42,7 +44,10 @@ fn awkward_mesh() -> Mesh {
 fn off_modelnet_fused_header_fixture_loads_and_ignores_face_colours() {
     let m = load_mesh(fixture("modelnet_fused_header.off")).unwrap();
     assert_eq!(m.vertices.len(), 4);
-    assert_eq!(m.triangles, vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]);
+    assert_eq!(
+        m.triangles,
+        vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]
+    );
     assert_eq!(m.vertices[3], Vec3::Z);
 }
 
@@ -56,7 +61,10 @@ fn off_cube_quads_are_fan_triangulated() {
     let centre = Vec3::splat(0.5);
     for (i, n) in m.face_normals().iter().enumerate() {
         let [a, _, _] = m.triangle(i);
-        assert!(n.dot(a.as_vec3() - centre) > 0.0, "triangle {i} faces inwards");
+        assert!(
+            n.dot(a.as_vec3() - centre) > 0.0,
+            "triangle {i} faces inwards"
+        );
     }
 }
 
@@ -80,25 +88,47 @@ fn ply_ascii_fixture_gives_mesh_and_coloured_cloud() {
     let c = read_ply_cloud(fixture("square_ascii.ply")).unwrap();
     assert_eq!(c.points, m.vertices);
     assert_eq!(c.normals, None);
-    assert_eq!(c.colors, Some(vec![[255, 0, 0], [0, 255, 0], [0, 0, 255], [10, 20, 30]]));
+    assert_eq!(
+        c.colors,
+        Some(vec![[255, 0, 0], [0, 255, 0], [0, 0, 255], [10, 20, 30]])
+    );
 }
 
 #[test]
 fn ply_binary_big_endian_doubles_and_vertex_index_list() {
     let m = load_mesh(fixture("tetra_binary_be_double.ply")).unwrap();
     assert_eq!(m.vertices, vec![Vec3::ZERO, Vec3::X, Vec3::Y, Vec3::Z]);
-    assert_eq!(m.triangles, vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]);
+    assert_eq!(
+        m.triangles,
+        vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]
+    );
 }
 
 #[test]
 fn ply_binary_little_endian_cloud_fixture_with_normals_and_colours() {
     let c = read_ply_cloud(fixture("cloud_binary_le.ply")).unwrap();
-    assert_eq!(c.points, vec![Vec3::new(0.1, 0.2, 0.3), Vec3::new(-1.5, 2.25, 1e-3), Vec3::new(3.0, -4.0, 5.0)]);
+    assert_eq!(
+        c.points,
+        vec![
+            Vec3::new(0.1, 0.2, 0.3),
+            Vec3::new(-1.5, 2.25, 1e-3),
+            Vec3::new(3.0, -4.0, 5.0)
+        ]
+    );
     assert_eq!(c.normals, Some(vec![Vec3::Z; 3]));
     assert_eq!(c.colors, Some(vec![[0, 0, 0], [1, 2, 3], [2, 4, 6]]));
     // A cloud without faces is not a mesh.
     let e = load_mesh(fixture("cloud_binary_le.ply")).unwrap_err();
-    assert!(matches!(e, MeshError::Data { source: MeshDataError::NoFaces, .. }), "{e:?}");
+    assert!(
+        matches!(
+            e,
+            MeshError::Data {
+                source: MeshDataError::NoFaces,
+                ..
+            }
+        ),
+        "{e:?}"
+    );
 }
 
 #[test]
@@ -106,7 +136,10 @@ fn extension_dispatch_is_case_insensitive() {
     let dir = tempfile::tempdir().unwrap();
     let upper = dir.path().join("CUBE.OFF");
     std::fs::copy(fixture("cube.off"), &upper).unwrap();
-    assert_eq!(load_mesh(&upper).unwrap(), load_mesh(fixture("cube.off")).unwrap());
+    assert_eq!(
+        load_mesh(&upper).unwrap(),
+        load_mesh(fixture("cube.off")).unwrap()
+    );
     let glb = dir.path().join("Scene.GLTF");
     std::fs::copy(fixture("two_nodes.gltf"), &glb).unwrap();
     assert_eq!(load_mesh(&glb).unwrap().triangles.len(), 2);
@@ -185,7 +218,10 @@ fn glb_with_binary_chunk_matches_the_embedded_gltf() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("two_nodes.glb");
     std::fs::write(&path, &bytes).unwrap();
-    assert_eq!(load_mesh(&path).unwrap(), load_mesh(fixture("two_nodes.gltf")).unwrap());
+    assert_eq!(
+        load_mesh(&path).unwrap(),
+        load_mesh(fixture("two_nodes.gltf")).unwrap()
+    );
 }
 
 #[test]
@@ -202,7 +238,10 @@ fn gltf_external_buffer_is_resolved_next_to_the_file() {
 fn gltf_error(json: &serde_json::Value) -> String {
     let bytes = serde_json::to_vec(json).unwrap();
     let e = read_gltf(&bytes, None, Path::new("bad.gltf")).unwrap_err();
-    assert!(matches!(e, MeshError::Format { .. } | MeshError::Data { .. }), "{e:?}");
+    assert!(
+        matches!(e, MeshError::Format { .. } | MeshError::Data { .. }),
+        "{e:?}"
+    );
     let s = e.to_string();
     assert!(s.contains("bad.gltf"), "{s}");
     s
@@ -213,7 +252,10 @@ fn gltf_non_triangle_modes_out_of_range_indices_and_cycles_are_errors() {
     let mut lines = fixture_json();
     lines["meshes"][1]["primitives"][0]["mode"] = 1.into();
     let s = gltf_error(&lines);
-    assert!(s.contains("mesh 1 primitive 0") && s.contains("Lines"), "{s}");
+    assert!(
+        s.contains("mesh 1 primitive 0") && s.contains("Lines"),
+        "{s}"
+    );
 
     let mut indices = fixture_json();
     indices["accessors"][1]["count"] = 2.into();
@@ -231,19 +273,28 @@ fn gltf_non_triangle_modes_out_of_range_indices_and_cycles_are_errors() {
     let mut cycle = fixture_json();
     cycle["nodes"][1]["children"] = serde_json::json!([0]);
     let s = gltf_error(&cycle);
-    assert!(s.contains("not a tree") || s.contains("invalid glTF"), "{s}");
+    assert!(
+        s.contains("not a tree") || s.contains("invalid glTF"),
+        "{s}"
+    );
 
     let mut past_end = fixture_json();
     past_end["accessors"][0]["count"] = 4.into();
     let s = gltf_error(&past_end);
-    assert!(s.contains("past the end") || s.contains("invalid glTF"), "{s}");
+    assert!(
+        s.contains("past the end") || s.contains("invalid glTF"),
+        "{s}"
+    );
 }
 
 // ------------------------------------------------------------------------------------------
 // Round trips
 
-const ENCODINGS: [PlyEncoding; 3] =
-    [PlyEncoding::Ascii, PlyEncoding::BinaryLittleEndian, PlyEncoding::BinaryBigEndian];
+const ENCODINGS: [PlyEncoding; 3] = [
+    PlyEncoding::Ascii,
+    PlyEncoding::BinaryLittleEndian,
+    PlyEncoding::BinaryBigEndian,
+];
 
 #[test]
 fn mesh_ply_round_trip_is_bit_exact_in_every_encoding() {
@@ -267,22 +318,33 @@ fn mesh_ply_round_trip_is_bit_exact_in_every_encoding() {
 
 #[test]
 fn cloud_ply_round_trip_with_and_without_attributes() {
-    let points = vec![Vec3::new(0.1, -0.0, 1e-30), Vec3::new(-3.4e38, 1e-45, 7.5), Vec3::new(1.0, 2.0, 3.0)];
+    let points = vec![
+        Vec3::new(0.1, -0.0, 1e-30),
+        Vec3::new(-3.4e38, 1e-45, 7.5),
+        Vec3::new(1.0, 2.0, 3.0),
+    ];
     let normals = vec![Vec3::X, Vec3::new(0.6, 0.8, 0.0), Vec3::new(0.0, 0.0, -1.0)];
     let colors = vec![[0, 128, 255], [1, 2, 3], [255, 255, 255]];
     let dir = tempfile::tempdir().unwrap();
     for encoding in ENCODINGS {
-        for (with_normals, with_colors) in [(false, false), (true, false), (false, true), (true, true)] {
+        for (with_normals, with_colors) in
+            [(false, false), (true, false), (false, true), (true, true)]
+        {
             let cloud = PointCloud {
                 points: points.clone(),
                 normals: with_normals.then(|| normals.clone()),
                 colors: with_colors.then(|| colors.clone()),
             };
-            let path = dir.path().join(format!("cloud_{encoding:?}_{with_normals}_{with_colors}.ply"));
+            let path = dir.path().join(format!(
+                "cloud_{encoding:?}_{with_normals}_{with_colors}.ply"
+            ));
             write_ply(&path, &cloud, encoding).unwrap();
             let back = read_ply_cloud(&path).unwrap();
             assert_eq!(bits(&back.points), bits(&cloud.points), "{encoding:?}");
-            assert_eq!(back.normals.as_deref().map(bits), cloud.normals.as_deref().map(bits));
+            assert_eq!(
+                back.normals.as_deref().map(bits),
+                cloud.normals.as_deref().map(bits)
+            );
             assert_eq!(back.colors, cloud.colors);
         }
     }
@@ -307,7 +369,10 @@ property float x\nproperty float y\nproperty float z\nproperty float nx\npropert
 property float nz\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n\
 1 1 1 0 0 1 1 2 3\n";
     assert_eq!(text, expected);
-    assert_eq!(read_ply_points(text.as_bytes(), Path::new("m.ply")).unwrap(), cloud);
+    assert_eq!(
+        read_ply_points(text.as_bytes(), Path::new("m.ply")).unwrap(),
+        cloud
+    );
 }
 
 #[test]
@@ -317,18 +382,52 @@ fn invalid_clouds_and_meshes_are_rejected_and_nothing_is_written() {
     let nan = PointCloud::from_points(vec![Vec3::ZERO, Vec3::new(f32::NAN, 0.0, 0.0)]);
     let e = write_ply(&path, &nan, PlyEncoding::Ascii).unwrap_err();
     assert!(matches!(e, MeshError::Cloud { .. }), "{e:?}");
-    let short = PointCloud { points: vec![Vec3::ZERO; 2], normals: Some(vec![Vec3::Z]), colors: None };
-    assert!(matches!(write_ply(&path, &short, PlyEncoding::BinaryLittleEndian), Err(MeshError::Cloud { .. })));
-    let nan_normal = PointCloud { points: vec![Vec3::ZERO], normals: Some(vec![Vec3::NAN]), colors: None };
-    assert!(matches!(write_ply(&path, &nan_normal, PlyEncoding::Ascii), Err(MeshError::Cloud { .. })));
-    let broken = Mesh { vertices: vec![Vec3::ZERO; 3], triangles: vec![[0, 1, 3]] };
+    let short = PointCloud {
+        points: vec![Vec3::ZERO; 2],
+        normals: Some(vec![Vec3::Z]),
+        colors: None,
+    };
+    assert!(matches!(
+        write_ply(&path, &short, PlyEncoding::BinaryLittleEndian),
+        Err(MeshError::Cloud { .. })
+    ));
+    let nan_normal = PointCloud {
+        points: vec![Vec3::ZERO],
+        normals: Some(vec![Vec3::NAN]),
+        colors: None,
+    };
+    assert!(matches!(
+        write_ply(&path, &nan_normal, PlyEncoding::Ascii),
+        Err(MeshError::Cloud { .. })
+    ));
+    let broken = Mesh {
+        vertices: vec![Vec3::ZERO; 3],
+        triangles: vec![[0, 1, 3]],
+    };
     let e = write_mesh_ply(&path, &broken, PlyEncoding::Ascii).unwrap_err();
-    assert!(matches!(e, MeshError::Data { source: MeshDataError::IndexOutOfRange { face: 0, .. }, .. }), "{e:?}");
+    assert!(
+        matches!(
+            e,
+            MeshError::Data {
+                source: MeshDataError::IndexOutOfRange { face: 0, .. },
+                ..
+            }
+        ),
+        "{e:?}"
+    );
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
     // Writing into a missing directory is an I/O error naming the target.
     let missing = dir.path().join("no/such/dir/out.ply");
-    let e = write_ply(&missing, &PointCloud::from_points(vec![Vec3::ONE]), PlyEncoding::Ascii).unwrap_err();
-    assert!(matches!(e, MeshError::Io { .. }) && e.path() == missing, "{e:?}");
+    let e = write_ply(
+        &missing,
+        &PointCloud::from_points(vec![Vec3::ONE]),
+        PlyEncoding::Ascii,
+    )
+    .unwrap_err();
+    assert!(
+        matches!(e, MeshError::Io { .. }) && e.path() == missing,
+        "{e:?}"
+    );
 }
 
 #[test]
@@ -383,7 +482,10 @@ fn truncated_and_inconsistent_files_name_file_and_line() {
     assert_eq!(parse_line(&e), 3);
     assert!(e.to_string().contains("vertex 2"), "{e}");
 
-    let e = error_for("range.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\n\nf 1 2 3\nf 1 2 9\n");
+    let e = error_for(
+        "range.obj",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\n\nf 1 2 3\nf 1 2 9\n",
+    );
     assert_eq!(parse_line(&e), 6);
 
     let e = error_for("words.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 three\n");
@@ -402,17 +504,37 @@ property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_he
     let e = error_for("range.ply", &bytes);
     assert!(e.to_string().contains("face 0 refers to vertex 3"), "{e}");
     let e = error_for("cut.ply", &bytes[..bytes.len() - 3]);
-    assert!(matches!(e, MeshError::Format { .. } | MeshError::Parse { .. }), "{e:?}");
+    assert!(
+        matches!(e, MeshError::Format { .. } | MeshError::Parse { .. }),
+        "{e:?}"
+    );
 
     let e = error_for("nofaces.off", b"OFF 3 0 0\n0 0 0\n1 0 0\n0 1 0\n");
-    assert!(matches!(e, MeshError::Data { source: MeshDataError::NoFaces, .. }), "{e:?}");
+    assert!(
+        matches!(
+            e,
+            MeshError::Data {
+                source: MeshDataError::NoFaces,
+                ..
+            }
+        ),
+        "{e:?}"
+    );
 }
 
 #[test]
 fn huge_header_counts_are_errors_not_allocations() {
-    let e = read_off(&b"OFF\n18446744073709551615 18446744073709551615 0\n0 0 0\n"[..], Path::new("h.off")).unwrap_err();
+    let e = read_off(
+        &b"OFF\n18446744073709551615 18446744073709551615 0\n0 0 0\n"[..],
+        Path::new("h.off"),
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("vertices"), "{e}");
-    let e = read_off(&b"OFF 99999999999999999999999 1 0\n"[..], Path::new("h.off")).unwrap_err();
+    let e = read_off(
+        &b"OFF 99999999999999999999999 1 0\n"[..],
+        Path::new("h.off"),
+    )
+    .unwrap_err();
     assert_eq!(parse_line(&e), 1);
     let ply = b"ply\nformat ascii 1.0\nelement vertex 1000000000000\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n";
     assert!(read_ply(&ply[..], Path::new("h.ply")).is_err());

@@ -70,49 +70,79 @@ struct Timings {
 pub fn run(args: &DemoArgs) -> Result<(), CliError> {
     tracing::info!(config = %serde_json::to_string(args).unwrap_or_default(), "incontext demo");
     if !(args.init_rotation_deg.is_finite() && args.init_translation.is_finite()) {
-        return Err(CliError::Input(anyhow!("--init-rotation-deg and --init-translation must be finite")));
+        return Err(CliError::Input(anyhow!(
+            "--init-rotation-deg and --init-translation must be finite"
+        )));
     }
     let internal = |e: anyhow::Error| CliError::Internal(e);
     let mut t = Timings::default();
     let clock = Instant::now();
 
     let mut object = ic_geometry::shapes::random_object(args.seed);
-    object.normalise().context("normalising the procedural object").map_err(internal)?;
+    object
+        .normalise()
+        .context("normalising the procedural object")
+        .map_err(internal)?;
     t.object = ms(clock);
 
     let clock = Instant::now();
-    let model = sample_visible_surface(&object, 4 * MODEL_POINTS, args.seed, VisibleSurfaceOptions::default())
-        .context("sampling model points")
-        .map_err(internal)?;
+    let model = sample_visible_surface(
+        &object,
+        4 * MODEL_POINTS,
+        args.seed,
+        VisibleSurfaceOptions::default(),
+    )
+    .context("sampling model points")
+    .map_err(internal)?;
     t.model_points = ms(clock);
 
     // The true pose: the object at the origin, the camera on the paper's view sphere.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed ^ 0x5eed);
     let viewpoint = ViewSphere::paper(CAMERA_DISTANCE).sample(&mut rng);
-    let truth = viewpoint.camera_pose(DVec3::ZERO).map_err(|e| internal(e.into()))?;
+    let truth = viewpoint
+        .camera_pose(DVec3::ZERO)
+        .map_err(|e| internal(e.into()))?;
     tracing::info!(?viewpoint, "camera");
 
     let clock = Instant::now();
     let intrinsics = Intrinsics::from_fov_y(320, 240, 60.0).map_err(|e| internal(e.into()))?;
     let scene = Scene::single(Arc::new(object.clone()), Pose::IDENTITY, 1);
-    let view = CpuRenderer::new().render(&scene, &Camera::new(intrinsics, truth)).map_err(|e| internal(e.into()))?;
+    let view = CpuRenderer::new()
+        .render(&scene, &Camera::new(intrinsics, truth))
+        .map_err(|e| internal(e.into()))?;
     t.render = ms(clock);
 
     let clock = Instant::now();
-    let back_projected = intrinsics.back_project_depth(&view.depth, None).map_err(|e| internal(e.into()))?;
-    let voxelised = voxel_downsample(&PointCloud::from_points(back_projected), VOXEL).map_err(|e| internal(e.into()))?;
+    let back_projected = intrinsics
+        .back_project_depth(&view.depth, None)
+        .map_err(|e| internal(e.into()))?;
+    let voxelised = voxel_downsample(&PointCloud::from_points(back_projected), VOXEL)
+        .map_err(|e| internal(e.into()))?;
     if voxelised.len() < 3 {
-        return Err(internal(anyhow!("the object covers too few pixels ({} points)", voxelised.len())));
+        return Err(internal(anyhow!(
+            "the object covers too few pixels ({} points)",
+            voxelised.len()
+        )));
     }
-    let observed = random_subsample(&voxelised, OBSERVED_POINTS, &mut rng).map_err(|e| internal(e.into()))?;
+    let observed =
+        random_subsample(&voxelised, OBSERVED_POINTS, &mut rng).map_err(|e| internal(e.into()))?;
     t.observed_points = ms(clock);
 
     // Stand-in for the network's one-shot estimate (issue 5): the truth, perturbed.
-    let axis = DVec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
-    let shift = DVec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+    let axis = DVec3::new(
+        rng.random_range(-1.0..1.0),
+        rng.random_range(-1.0..1.0),
+        rng.random_range(-1.0..1.0),
+    );
+    let shift = DVec3::new(
+        rng.random_range(-1.0..1.0),
+        rng.random_range(-1.0..1.0),
+        rng.random_range(-1.0..1.0),
+    );
     // Rotate about the object's centre and shift, in the camera frame.
     let initial = Pose::new(
-        Pose::from_axis_angle(axis, args.init_rotation_deg.to_radians(), DVec3::ZERO).rotation * truth.rotation,
+        Pose::from_axis_angle(axis, args.init_rotation_deg.to_radians(), DVec3::ZERO).rotation
+            * truth.rotation,
         truth.translation + shift.normalize_or_zero() * args.init_translation,
     );
 
@@ -122,8 +152,15 @@ pub fn run(args: &DemoArgs) -> Result<(), CliError> {
     // onto the model (point-to-plane, the model's face normals) and the result is inverted.
     let model_normals = model.normals.as_deref();
     let target = IcpTarget::new(&model.points, model_normals).map_err(|e| internal(e.into()))?;
-    let options = IcpOptions { method: IcpMethod::PointToPlane, max_correspondence_distance: 0.2, max_iterations: 50, ..Default::default() };
-    let result = target.register(&observed.points, &initial.inverse(), &options).map_err(|e| internal(e.into()))?;
+    let options = IcpOptions {
+        method: IcpMethod::PointToPlane,
+        max_correspondence_distance: 0.2,
+        max_iterations: 50,
+        ..Default::default()
+    };
+    let result = target
+        .register(&observed.points, &initial.inverse(), &options)
+        .map_err(|e| internal(e.into()))?;
     let estimate = result.pose.inverse();
     t.icp = ms(clock);
 
@@ -140,10 +177,15 @@ pub fn run(args: &DemoArgs) -> Result<(), CliError> {
         icp_iterations: result.iterations,
         timings_ms: t,
     };
-    println!("{}", serde_json::to_string_pretty(&report).map_err(|e| internal(e.into()))?);
+    println!(
+        "{}",
+        serde_json::to_string_pretty(&report).map_err(|e| internal(e.into()))?
+    );
 
     if let Some(dir) = &args.out {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display())).map_err(CliError::Input)?;
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("creating {}", dir.display()))
+            .map_err(CliError::Input)?;
         let mut scene_cloud = observed.clone();
         scene_cloud.colors = Some(vec![[160, 160, 160]; scene_cloud.len()]);
         let aligned = PointCloud {
@@ -153,8 +195,14 @@ pub fn run(args: &DemoArgs) -> Result<(), CliError> {
         };
         scene_cloud.normals = None;
         scene_cloud.extend(&aligned);
-        write_ply(dir.join("aligned.ply"), &scene_cloud, PlyEncoding::BinaryLittleEndian).map_err(|e| CliError::Input(e.into()))?;
-        ic_render::write_debug_png(dir.join("depth.png"), &view.depth, Some(&view.mask(1))).map_err(|e| CliError::Input(e.into()))?;
+        write_ply(
+            dir.join("aligned.ply"),
+            &scene_cloud,
+            PlyEncoding::BinaryLittleEndian,
+        )
+        .map_err(|e| CliError::Input(e.into()))?;
+        ic_render::write_debug_png(dir.join("depth.png"), &view.depth, Some(&view.mask(1)))
+            .map_err(|e| CliError::Input(e.into()))?;
         tracing::info!(dir = %dir.display(), "wrote aligned.ply (observed grey, aligned model red) and depth.png");
     }
     Ok(())

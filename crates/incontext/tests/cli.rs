@@ -3,7 +3,10 @@
 use std::process::Command;
 
 fn incontext(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_incontext")).args(args).output().expect("the binary runs")
+    Command::new(env!("CARGO_BIN_EXE_incontext"))
+        .args(args)
+        .output()
+        .expect("the binary runs")
 }
 
 #[test]
@@ -16,7 +19,10 @@ fn demo_recovers_the_pose_and_writes_its_files() {
     assert_eq!(report["seed"], 1);
     let rot = report["rotation_error_deg"].as_f64().unwrap();
     let init = report["initial_rotation_error_deg"].as_f64().unwrap();
-    assert!((init - 10.0).abs() < 1e-6, "the stand-in estimate starts 10° off");
+    assert!(
+        (init - 10.0).abs() < 1e-6,
+        "the stand-in estimate starts 10° off"
+    );
     assert!(rot < 1.0, "ICP should refine 10° to under 1°, got {rot}°");
     assert!(dir.join("aligned.ply").is_file() && dir.join("depth.png").is_file());
     // The run prints its config.

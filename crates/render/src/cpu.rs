@@ -12,8 +12,8 @@ use glam::{DVec2, DVec3};
 use ic_geometry::Intrinsics;
 use rayon::prelude::*;
 
-use crate::renderer::{model_to_camera, Camera, Rendering, Renderer, Scene};
 use crate::RenderError;
+use crate::renderer::{Camera, Renderer, Rendering, Scene, model_to_camera};
 
 /// Rows per parallel work item.
 const BAND_ROWS: usize = 8;
@@ -38,7 +38,11 @@ impl Renderer for CpuRenderer {
         Ok(rasterise(scene, camera, true))
     }
 
-    fn render_batch(&mut self, scene: &Scene, cameras: &[Camera]) -> Result<Vec<Rendering>, RenderError> {
+    fn render_batch(
+        &mut self,
+        scene: &Scene,
+        cameras: &[Camera],
+    ) -> Result<Vec<Rendering>, RenderError> {
         scene.validate()?;
         for c in cameras {
             c.validate()?;
@@ -46,7 +50,10 @@ impl Renderer for CpuRenderer {
         if cameras.len() == 1 {
             return Ok(vec![rasterise(scene, &cameras[0], true)]);
         }
-        Ok(cameras.par_iter().map(|c| rasterise(scene, c, false)).collect())
+        Ok(cameras
+            .par_iter()
+            .map(|c| rasterise(scene, c, false))
+            .collect())
     }
 
     fn name(&self) -> String {
@@ -117,7 +124,12 @@ fn setup(tri: [DVec3; 3], id: u32, k: &Intrinsics, near: f64) -> Option<Poly> {
     if area < 0.0 {
         pts[..n].reverse();
     }
-    let (mut umin, mut umax, mut vmin, mut vmax) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+    let (mut umin, mut umax, mut vmin, mut vmax) = (
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    );
     for p in &pts[..n] {
         umin = umin.min(p.x);
         umax = umax.max(p.x);
@@ -174,10 +186,10 @@ fn raster_band(band: &mut Band, polys: &[Poly], list: &[u32], k: &Intrinsics) {
         let v_lo = p.v0.max(band.row0);
         let v_hi = p.v1.min(row_end);
         let mut edges = [(DVec2::ZERO, DVec2::ZERO, false); 4];
-        for i in 0..p.n {
+        for (i, e) in edges.iter_mut().enumerate().take(p.n) {
             let a = p.pts[i];
             let b = p.pts[(i + 1) % p.n];
-            edges[i] = (a, b - a, top_left(a, b));
+            *e = (a, b - a, top_left(a, b));
         }
         let edges = &edges[..p.n];
         for v in v_lo..=v_hi {
@@ -193,7 +205,7 @@ fn raster_band(band: &mut Band, polys: &[Poly], list: &[u32], k: &Intrinsics) {
                     continue;
                 }
                 let inv_z = p.plane[0] * uf + p.plane[1] * vf + p.plane[2];
-                if !(inv_z > 0.0) {
+                if inv_z.is_nan() || inv_z <= 0.0 {
                     continue;
                 }
                 let z = 1.0 / inv_z;
@@ -210,6 +222,9 @@ fn raster_band(band: &mut Band, polys: &[Poly], list: &[u32], k: &Intrinsics) {
     }
 }
 
+/// A band's index and its rows of depth, ids and incidence.
+type BandSlices<'a> = (usize, ((&'a mut [f32], &'a mut [u32]), &'a mut [f32]));
+
 /// Renders one view; `parallel` spreads set-up and bands over rayon's pool.
 pub(crate) fn rasterise(scene: &Scene, camera: &Camera, parallel: bool) -> Rendering {
     let k = camera.intrinsics;
@@ -219,9 +234,23 @@ pub(crate) fn rasterise(scene: &Scene, camera: &Camera, parallel: bool) -> Rende
     // ties resolve like the GPU's draw order.
     let mut polys: Vec<Poly> = Vec::new();
     for (o, pose) in scene.objects.iter().zip(&poses) {
-        let verts: Vec<DVec3> = o.mesh.vertices.iter().map(|v| pose.apply(v.as_dvec3())).collect();
+        let verts: Vec<DVec3> = o
+            .mesh
+            .vertices
+            .iter()
+            .map(|v| pose.apply(v.as_dvec3()))
+            .collect();
         let make = |t: &[u32; 3]| {
-            setup([verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]], o.id, &k, camera.near)
+            setup(
+                [
+                    verts[t[0] as usize],
+                    verts[t[1] as usize],
+                    verts[t[2] as usize],
+                ],
+                o.id,
+                &k,
+                camera.near,
+            )
         };
         if parallel && o.mesh.triangles.len() > 2048 {
             polys.par_extend(o.mesh.triangles.par_iter().filter_map(make));
@@ -233,17 +262,27 @@ pub(crate) fn rasterise(scene: &Scene, camera: &Camera, parallel: bool) -> Rende
     let n_bands = h.div_ceil(BAND_ROWS);
     let mut bins: Vec<Vec<u32>> = vec![Vec::new(); n_bands];
     for (i, p) in polys.iter().enumerate() {
-        for b in (p.v0 / BAND_ROWS)..=(p.v1 / BAND_ROWS) {
-            bins[b].push(i as u32);
+        for bin in &mut bins[p.v0 / BAND_ROWS..=p.v1 / BAND_ROWS] {
+            bin.push(i as u32);
         }
     }
     let mut out = Rendering::empty(k.width, k.height);
     let chunk = BAND_ROWS * w;
-    let work = |(bi, ((depth, ids), inc)): (usize, ((&mut [f32], &mut [u32]), &mut [f32]))| {
-        let mut band = Band { row0: bi * BAND_ROWS, zbuf: vec![f64::INFINITY; depth.len()], depth, ids, inc };
+    let work = |(bi, ((depth, ids), inc)): BandSlices| {
+        let mut band = Band {
+            row0: bi * BAND_ROWS,
+            zbuf: vec![f64::INFINITY; depth.len()],
+            depth,
+            ids,
+            inc,
+        };
         raster_band(&mut band, &polys, &bins[bi], &k);
     };
-    let Rendering { depth, instances, incidence } = &mut out;
+    let Rendering {
+        depth,
+        instances,
+        incidence,
+    } = &mut out;
     if parallel {
         depth
             .data

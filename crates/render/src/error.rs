@@ -42,9 +42,14 @@ pub enum RenderError {
     ImageTooLarge { width: u32, height: u32, max: u32 },
     /// A scene configuration value is out of range.
     #[error("invalid scene configuration: {field}: {message}")]
-    InvalidConfig { field: &'static str, message: String },
+    InvalidConfig {
+        field: &'static str,
+        message: String,
+    },
     /// Rejection sampling found no valid placement.
-    #[error("could not place {what} after {tries} tries (room too small for the object and camera distance?)")]
+    #[error(
+        "could not place {what} after {tries} tries (room too small for the object and camera distance?)"
+    )]
     PlacementFailed { what: &'static str, tries: usize },
 }
 
@@ -62,13 +67,28 @@ pub enum ImageIoError {
     Codec { path: PathBuf, message: String },
     /// The file decoded but has the wrong kind of pixels (bit depth, colour type, channels).
     #[error("{path}: expected {expected}, found {found}")]
-    Format { path: PathBuf, expected: String, found: String },
+    Format {
+        path: PathBuf,
+        expected: String,
+        found: String,
+    },
     /// The image size differs from the expected one.
     #[error("{path}: image is {got_width}×{got_height}, expected {width}×{height}")]
-    SizeMismatch { path: PathBuf, width: u32, height: u32, got_width: u32, got_height: u32 },
+    SizeMismatch {
+        path: PathBuf,
+        width: u32,
+        height: u32,
+        got_width: u32,
+        got_height: u32,
+    },
     /// A value cannot be stored in the format (depth too far for 16 bits, NaN, id > 65535, …).
     #[error("{path}: pixel ({u}, {v}): {message}")]
-    ValueOutOfRange { path: PathBuf, u: u32, v: u32, message: String },
+    ValueOutOfRange {
+        path: PathBuf,
+        u: u32,
+        v: u32,
+        message: String,
+    },
     /// A parameter (e.g. the depth scale) is invalid.
     #[error("{path}: invalid parameter: {message}")]
     InvalidParameter { path: PathBuf, message: String },

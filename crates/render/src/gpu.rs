@@ -8,14 +8,14 @@
 //! uses it; per view only a 256-byte uniform entry per object changes. A batch of views is one
 //! submission and one readback (one array layer per view).
 
-use std::sync::{mpsc, Arc, Weak};
+use std::sync::{Arc, Weak, mpsc};
 
 use bytemuck::{Pod, Zeroable};
 use ic_geometry::Mesh;
 use wgpu::util::DeviceExt;
 
-use crate::renderer::{model_to_camera, Camera, Rendering, Renderer, Scene};
 use crate::RenderError;
+use crate::renderer::{Camera, Renderer, Rendering, Scene, model_to_camera};
 
 /// Views per submission in [`WgpuRenderer::render_batch`].
 const MAX_BATCH: u32 = 16;
@@ -33,7 +33,10 @@ pub struct WgpuOptions {
 impl WgpuOptions {
     /// Options from the environment: `WGPU_BACKEND` when set.
     pub fn from_env() -> Self {
-        WgpuOptions { backends: std::env::var("WGPU_BACKEND").ok(), force_fallback_adapter: false }
+        WgpuOptions {
+            backends: std::env::var("WGPU_BACKEND").ok(),
+            force_fallback_adapter: false,
+        }
     }
 }
 
@@ -48,7 +51,12 @@ pub fn parse_backends(value: &str) -> Result<wgpu::Backends, RenderError> {
             "gl" | "gles" | "opengl" => wgpu::Backends::GL,
             "metal" | "mtl" => wgpu::Backends::METAL,
             "dx12" | "d3d12" => wgpu::Backends::DX12,
-            _ => return Err(RenderError::InvalidBackend { value: value.to_string(), name }),
+            _ => {
+                return Err(RenderError::InvalidBackend {
+                    value: value.to_string(),
+                    name,
+                });
+            }
         };
     }
     Ok(out)
@@ -103,7 +111,10 @@ pub struct WgpuRenderer {
 
 impl std::fmt::Debug for WgpuRenderer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("WgpuRenderer").field("adapter", &self.info.name).field("backend", &self.info.backend).finish()
+        f.debug_struct("WgpuRenderer")
+            .field("adapter", &self.info.name)
+            .field("backend", &self.info.backend)
+            .finish()
     }
 }
 
@@ -117,7 +128,12 @@ impl WgpuRenderer {
     pub fn with_options(options: &WgpuOptions) -> Result<Self, RenderError> {
         let backends = match &options.backends {
             Some(v) => parse_backends(v)?,
-            None => wgpu::Backends::VULKAN | wgpu::Backends::GL | wgpu::Backends::METAL | wgpu::Backends::DX12,
+            None => {
+                wgpu::Backends::VULKAN
+                    | wgpu::Backends::GL
+                    | wgpu::Backends::METAL
+                    | wgpu::Backends::DX12
+            }
         };
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = backends;
@@ -128,7 +144,9 @@ impl WgpuRenderer {
             compatible_surface: None,
             apply_limit_buckets: false,
         }))
-        .map_err(|_| RenderError::NoAdapter { backends: format!("{backends:?}") })?;
+        .map_err(|_| RenderError::NoAdapter {
+            backends: format!("{backends:?}"),
+        })?;
         let info = adapter.get_info();
         let limits = adapter.limits();
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
@@ -139,7 +157,10 @@ impl WgpuRenderer {
             memory_hints: wgpu::MemoryHints::Performance,
             trace: wgpu::Trace::Off,
         }))
-        .map_err(|e| RenderError::Device { adapter: info.name.clone(), message: e.to_string() })?;
+        .map_err(|e| RenderError::Device {
+            adapter: info.name.clone(),
+            message: e.to_string(),
+        })?;
         tracing::debug!(adapter = %info.name, backend = ?info.backend, "wgpu renderer");
 
         let entry_size = std::mem::size_of::<Entry>() as u64;
@@ -170,7 +191,11 @@ impl WgpuRenderer {
         let vertex_layout = wgpu::VertexBufferLayout {
             array_stride: 12,
             step_mode: wgpu::VertexStepMode::Vertex,
-            attributes: &[wgpu::VertexAttribute { format: wgpu::VertexFormat::Float32x3, offset: 0, shader_location: 0 }],
+            attributes: &[wgpu::VertexAttribute {
+                format: wgpu::VertexFormat::Float32x3,
+                offset: 0,
+                shader_location: 0,
+            }],
         };
         let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("ic_render"),
@@ -240,25 +265,36 @@ impl WgpuRenderer {
     fn sync_meshes(&mut self, scene: &Scene) -> Vec<usize> {
         self.meshes.retain(|m| {
             m.source.strong_count() > 0
-                && scene.objects.iter().any(|o| std::ptr::eq(Arc::as_ptr(&o.mesh), m.source.as_ptr()))
+                && scene
+                    .objects
+                    .iter()
+                    .any(|o| std::ptr::eq(Arc::as_ptr(&o.mesh), m.source.as_ptr()))
         });
         let mut slots = Vec::with_capacity(scene.objects.len());
         for o in &scene.objects {
-            let found = self.meshes.iter().position(|m| std::ptr::eq(Arc::as_ptr(&o.mesh), m.source.as_ptr()));
+            let found = self
+                .meshes
+                .iter()
+                .position(|m| std::ptr::eq(Arc::as_ptr(&o.mesh), m.source.as_ptr()));
             let slot = match found {
                 Some(s) => s,
                 None => {
-                    let flat: Vec<[f32; 3]> = o.mesh.vertices.iter().map(|v| v.to_array()).collect();
-                    let vertices = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                        label: Some("ic_render vertices"),
-                        contents: bytemuck::cast_slice(&flat),
-                        usage: wgpu::BufferUsages::VERTEX,
-                    });
-                    let indices = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                        label: Some("ic_render indices"),
-                        contents: bytemuck::cast_slice(&o.mesh.triangles),
-                        usage: wgpu::BufferUsages::INDEX,
-                    });
+                    let flat: Vec<[f32; 3]> =
+                        o.mesh.vertices.iter().map(|v| v.to_array()).collect();
+                    let vertices =
+                        self.device
+                            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                                label: Some("ic_render vertices"),
+                                contents: bytemuck::cast_slice(&flat),
+                                usage: wgpu::BufferUsages::VERTEX,
+                            });
+                    let indices =
+                        self.device
+                            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                                label: Some("ic_render indices"),
+                                contents: bytemuck::cast_slice(&o.mesh.triangles),
+                                usage: wgpu::BufferUsages::INDEX,
+                            });
                     self.meshes.push(GpuMesh {
                         source: Arc::downgrade(&o.mesh),
                         vertices,
@@ -296,19 +332,35 @@ impl WgpuRenderer {
                 }),
             }],
         });
-        self.uniforms = Some(Uniforms { buffer, bind_group, entries });
+        self.uniforms = Some(Uniforms {
+            buffer,
+            bind_group,
+            entries,
+        });
     }
 
     fn ensure_targets(&mut self, width: u32, height: u32, layers: u32) -> Result<(), RenderError> {
         if width > self.max_dim || height > self.max_dim {
-            return Err(RenderError::ImageTooLarge { width, height, max: self.max_dim });
+            return Err(RenderError::ImageTooLarge {
+                width,
+                height,
+                max: self.max_dim,
+            });
         }
-        if self.targets.as_ref().is_some_and(|t| t.width == width && t.height == height && t.layers >= layers) {
+        if self
+            .targets
+            .as_ref()
+            .is_some_and(|t| t.width == width && t.height == height && t.layers >= layers)
+        {
             return Ok(());
         }
         let color = self.device.create_texture(&wgpu::TextureDescriptor {
             label: Some("ic_render z+id"),
-            size: wgpu::Extent3d { width, height, depth_or_array_layers: layers },
+            size: wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: layers,
+            },
             mip_level_count: 1,
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
@@ -329,7 +381,11 @@ impl WgpuRenderer {
             .collect();
         let depth = self.device.create_texture(&wgpu::TextureDescriptor {
             label: Some("ic_render depth"),
-            size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+            size: wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
             mip_level_count: 1,
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
@@ -347,12 +403,25 @@ impl WgpuRenderer {
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        self.targets = Some(Targets { width, height, layers, color, color_views, depth_view, readback, padded_row });
+        self.targets = Some(Targets {
+            width,
+            height,
+            layers,
+            color,
+            color_views,
+            depth_view,
+            readback,
+            padded_row,
+        });
         Ok(())
     }
 
     /// Renders up to `MAX_BATCH` views of the same size in one submission.
-    fn render_chunk(&mut self, scene: &Scene, cameras: &[Camera]) -> Result<Vec<Rendering>, RenderError> {
+    fn render_chunk(
+        &mut self,
+        scene: &Scene,
+        cameras: &[Camera],
+    ) -> Result<Vec<Rendering>, RenderError> {
         let (width, height) = (cameras[0].intrinsics.width, cameras[0].intrinsics.height);
         let slots = self.sync_meshes(scene);
         let n_obj = scene.objects.len() as u64;
@@ -370,7 +439,12 @@ impl WgpuRenderer {
                 (2.0 * k.fy / k.height as f64) as f32,
                 (2.0 * (k.cy + 0.5) / k.height as f64) as f32,
             ];
-            for (oi, (o, mv)) in scene.objects.iter().zip(model_to_camera(scene, cam)).enumerate() {
+            for (oi, (o, mv)) in scene
+                .objects
+                .iter()
+                .zip(model_to_camera(scene, cam))
+                .enumerate()
+            {
                 let r = mv.rotation;
                 let t = mv.translation;
                 let model_view = [
@@ -380,9 +454,15 @@ impl WgpuRenderer {
                     t.x, t.y, t.z, 1.0,
                 ]
                 .map(|v| v as f32);
-                let e = Entry { model_view, proj, clip: [cam.near as f32, 0.0, 0.0, 0.0], id: [o.id, 0, 0, 0] };
+                let e = Entry {
+                    model_view,
+                    proj,
+                    clip: [cam.near as f32, 0.0, 0.0, 0.0],
+                    id: [o.id, 0, 0, 0],
+                };
                 let at = (self.stride * (vi as u64 * n_obj + oi as u64)) as usize;
-                bytes[at..at + std::mem::size_of::<Entry>()].copy_from_slice(bytemuck::bytes_of(&e));
+                bytes[at..at + std::mem::size_of::<Entry>()]
+                    .copy_from_slice(bytemuck::bytes_of(&e));
             }
         }
         let uniforms = self.uniforms.as_ref().expect("uniforms allocated");
@@ -391,7 +471,11 @@ impl WgpuRenderer {
             self.queue.write_buffer(&uniforms.buffer, 0, &bytes);
         }
 
-        let mut encoder = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("ic_render") });
+        let mut encoder = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("ic_render"),
+            });
         for vi in 0..n_views as usize {
             let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("ic_render view"),
@@ -399,11 +483,17 @@ impl WgpuRenderer {
                     view: &targets.color_views[vi],
                     depth_slice: None,
                     resolve_target: None,
-                    ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT), store: wgpu::StoreOp::Store },
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                        store: wgpu::StoreOp::Store,
+                    },
                 })],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                     view: &targets.depth_view,
-                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Discard }),
+                    depth_ops: Some(wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(0.0),
+                        store: wgpu::StoreOp::Discard,
+                    }),
                     stencil_ops: None,
                 }),
                 timestamp_writes: None,
@@ -435,7 +525,11 @@ impl WgpuRenderer {
                     rows_per_image: Some(height),
                 },
             },
-            wgpu::Extent3d { width, height, depth_or_array_layers: n_views },
+            wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: n_views,
+            },
         );
         self.queue.submit([encoder.finish()]);
 
@@ -445,13 +539,17 @@ impl WgpuRenderer {
         slice.map_async(wgpu::MapMode::Read, move |r| {
             let _ = tx.send(r);
         });
-        self.device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| RenderError::Gpu(e.to_string()))?;
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| RenderError::Gpu(e.to_string()))?;
         rx.recv()
             .map_err(|_| RenderError::Gpu("readback callback never ran".into()))?
             .map_err(|e| RenderError::Gpu(format!("mapping the readback buffer failed: {e}")))?;
         let mut out = Vec::with_capacity(n_views as usize);
         {
-            let data = slice.get_mapped_range().map_err(|e| RenderError::Gpu(format!("{e:?}")))?;
+            let data = slice
+                .get_mapped_range()
+                .map_err(|e| RenderError::Gpu(format!("{e:?}")))?;
             let (w, h) = (width as usize, height as usize);
             let row_bytes = targets.padded_row as usize;
             for vi in 0..n_views as usize {
@@ -482,10 +580,17 @@ impl Renderer for WgpuRenderer {
     fn render(&mut self, scene: &Scene, camera: &Camera) -> Result<Rendering, RenderError> {
         scene.validate()?;
         camera.validate()?;
-        Ok(self.render_chunk(scene, std::slice::from_ref(camera))?.pop().expect("one view"))
+        Ok(self
+            .render_chunk(scene, std::slice::from_ref(camera))?
+            .pop()
+            .expect("one view"))
     }
 
-    fn render_batch(&mut self, scene: &Scene, cameras: &[Camera]) -> Result<Vec<Rendering>, RenderError> {
+    fn render_batch(
+        &mut self,
+        scene: &Scene,
+        cameras: &[Camera],
+    ) -> Result<Vec<Rendering>, RenderError> {
         scene.validate()?;
         for c in cameras {
             c.validate()?;
@@ -510,4 +615,3 @@ impl Renderer for WgpuRenderer {
         format!("wgpu ({}, {:?})", self.info.name, self.info.backend)
     }
 }
-

@@ -19,11 +19,17 @@ use ic_geometry::{DepthImage, Image, InstanceImage, Mask};
 use crate::ImageIoError;
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ImageIoError + '_ {
-    move |source| ImageIoError::Io { path: path.to_path_buf(), source }
+    move |source| ImageIoError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
 }
 
 fn codec(path: &Path, e: impl std::fmt::Display) -> ImageIoError {
-    ImageIoError::Codec { path: path.to_path_buf(), message: e.to_string() }
+    ImageIoError::Codec {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
 }
 
 /// Writes `path` atomically: `write` fills a temporary file in the same directory, which is
@@ -33,17 +39,27 @@ pub fn write_atomic(
     write: impl FnOnce(&mut BufWriter<File>) -> Result<(), ImageIoError>,
 ) -> Result<(), ImageIoError> {
     static COUNTER: AtomicU64 = AtomicU64::new(0);
-    let name = path.file_name().ok_or_else(|| ImageIoError::InvalidParameter {
-        path: path.to_path_buf(),
-        message: "the path has no file name".into(),
-    })?;
-    let tmp_name = format!(".{}.tmp-{}-{}", name.to_string_lossy(), std::process::id(), COUNTER.fetch_add(1, Ordering::Relaxed));
+    let name = path
+        .file_name()
+        .ok_or_else(|| ImageIoError::InvalidParameter {
+            path: path.to_path_buf(),
+            message: "the path has no file name".into(),
+        })?;
+    let tmp_name = format!(
+        ".{}.tmp-{}-{}",
+        name.to_string_lossy(),
+        std::process::id(),
+        COUNTER.fetch_add(1, Ordering::Relaxed)
+    );
     let tmp: PathBuf = path.with_file_name(tmp_name);
     let result = (|| {
         let file = File::create(&tmp).map_err(io_err(path))?;
         let mut w = BufWriter::new(file);
         write(&mut w)?;
-        let file = w.into_inner().map_err(|e| ImageIoError::Io { path: path.to_path_buf(), source: e.into_error() })?;
+        let file = w.into_inner().map_err(|e| ImageIoError::Io {
+            path: path.to_path_buf(),
+            source: e.into_error(),
+        })?;
         file.sync_all().map_err(io_err(path))?;
         std::fs::rename(&tmp, path).map_err(io_err(path))
     })();
@@ -53,7 +69,13 @@ pub fn write_atomic(
     result
 }
 
-fn write_png_gray(path: &Path, width: u32, height: u32, depth: png::BitDepth, data: &[u8]) -> Result<(), ImageIoError> {
+fn write_png_gray(
+    path: &Path,
+    width: u32,
+    height: u32,
+    depth: png::BitDepth,
+    data: &[u8],
+) -> Result<(), ImageIoError> {
     write_atomic(path, |w| {
         let mut enc = png::Encoder::new(w, width, height);
         enc.set_color(png::ColorType::Grayscale);
@@ -65,7 +87,11 @@ fn write_png_gray(path: &Path, width: u32, height: u32, depth: png::BitDepth, da
 }
 
 /// Reads a single-channel PNG of the given bit depth; returns (width, height, raw bytes).
-fn read_png_gray(path: &Path, bits: png::BitDepth, expected: Option<(u32, u32)>) -> Result<(u32, u32, Vec<u8>), ImageIoError> {
+fn read_png_gray(
+    path: &Path,
+    bits: png::BitDepth,
+    expected: Option<(u32, u32)>,
+) -> Result<(u32, u32, Vec<u8>), ImageIoError> {
     let file = File::open(path).map_err(io_err(path))?;
     let mut dec = png::Decoder::new(BufReader::new(file));
     dec.set_transformations(png::Transformations::IDENTITY);
@@ -78,21 +104,38 @@ fn read_png_gray(path: &Path, bits: png::BitDepth, expected: Option<(u32, u32)>)
         return Err(ImageIoError::Format {
             path: path.to_path_buf(),
             expected: format!("a single-channel (grayscale) {}-bit PNG", bits as u8),
-            found: format!("{color:?} ({} channel(s)), {}-bit", color.samples(), depth as u8),
+            found: format!(
+                "{color:?} ({} channel(s)), {}-bit",
+                color.samples(),
+                depth as u8
+            ),
         });
     }
     check_size(path, width, height, expected)?;
-    let size = reader.output_buffer_size().ok_or_else(|| codec(path, "image too large"))?;
+    let size = reader
+        .output_buffer_size()
+        .ok_or_else(|| codec(path, "image too large"))?;
     let mut buf = vec![0u8; size];
     let info = reader.next_frame(&mut buf).map_err(|e| codec(path, e))?;
     buf.truncate(info.buffer_size());
     Ok((width, height, buf))
 }
 
-fn check_size(path: &Path, got_width: u32, got_height: u32, expected: Option<(u32, u32)>) -> Result<(), ImageIoError> {
+fn check_size(
+    path: &Path,
+    got_width: u32,
+    got_height: u32,
+    expected: Option<(u32, u32)>,
+) -> Result<(), ImageIoError> {
     match expected {
         Some((width, height)) if (width, height) != (got_width, got_height) => {
-            Err(ImageIoError::SizeMismatch { path: path.to_path_buf(), width, height, got_width, got_height })
+            Err(ImageIoError::SizeMismatch {
+                path: path.to_path_buf(),
+                width,
+                height,
+                got_width,
+                got_height,
+            })
         }
         _ => Ok(()),
     }
@@ -112,7 +155,11 @@ fn check_scale(path: &Path, depth_scale: f64) -> Result<(), ImageIoError> {
 /// Writes depth (metres, 0 = no return) as a 16-bit PNG with `stored × depth_scale = mm`
 /// (BOP; `depth_scale = 1.0` stores whole millimetres, 0.1 tenths of a millimetre). Fails on a
 /// negative or non-finite depth or one that does not fit 16 bits.
-pub fn write_depth_png(path: impl AsRef<Path>, depth: &DepthImage, depth_scale: f64) -> Result<(), ImageIoError> {
+pub fn write_depth_png(
+    path: impl AsRef<Path>,
+    depth: &DepthImage,
+    depth_scale: f64,
+) -> Result<(), ImageIoError> {
     let path = path.as_ref();
     check_scale(path, depth_scale)?;
     let w = depth.width as usize;
@@ -133,33 +180,66 @@ pub fn write_depth_png(path: impl AsRef<Path>, depth: &DepthImage, depth_scale: 
         }
         bytes.extend_from_slice(&(stored.round() as u16).to_be_bytes());
     }
-    write_png_gray(path, depth.width, depth.height, png::BitDepth::Sixteen, &bytes)
+    write_png_gray(
+        path,
+        depth.width,
+        depth.height,
+        png::BitDepth::Sixteen,
+        &bytes,
+    )
 }
 
 /// Reads a 16-bit depth PNG written with `depth_scale` back to metres. `expected` checks the
 /// size.
-pub fn read_depth_png(path: impl AsRef<Path>, depth_scale: f64, expected: Option<(u32, u32)>) -> Result<DepthImage, ImageIoError> {
+pub fn read_depth_png(
+    path: impl AsRef<Path>,
+    depth_scale: f64,
+    expected: Option<(u32, u32)>,
+) -> Result<DepthImage, ImageIoError> {
     let path = path.as_ref();
     check_scale(path, depth_scale)?;
     let (w, h, bytes) = read_png_gray(path, png::BitDepth::Sixteen, expected)?;
-    let data = bytes.chunks_exact(2).map(|c| (u16::from_be_bytes([c[0], c[1]]) as f64 * depth_scale / 1000.0) as f32).collect();
-    Ok(Image { width: w, height: h, data })
+    let data = bytes
+        .chunks_exact(2)
+        .map(|c| (u16::from_be_bytes([c[0], c[1]]) as f64 * depth_scale / 1000.0) as f32)
+        .collect();
+    Ok(Image {
+        width: w,
+        height: h,
+        data,
+    })
 }
 
 /// Writes a mask as an 8-bit PNG (255 = true, 0 = false).
 pub fn write_mask_png(path: impl AsRef<Path>, mask: &Mask) -> Result<(), ImageIoError> {
     let bytes: Vec<u8> = mask.data.iter().map(|&m| if m { 255 } else { 0 }).collect();
-    write_png_gray(path.as_ref(), mask.width, mask.height, png::BitDepth::Eight, &bytes)
+    write_png_gray(
+        path.as_ref(),
+        mask.width,
+        mask.height,
+        png::BitDepth::Eight,
+        &bytes,
+    )
 }
 
 /// Reads an 8-bit mask PNG (non-zero = true).
-pub fn read_mask_png(path: impl AsRef<Path>, expected: Option<(u32, u32)>) -> Result<Mask, ImageIoError> {
+pub fn read_mask_png(
+    path: impl AsRef<Path>,
+    expected: Option<(u32, u32)>,
+) -> Result<Mask, ImageIoError> {
     let (w, h, bytes) = read_png_gray(path.as_ref(), png::BitDepth::Eight, expected)?;
-    Ok(Image { width: w, height: h, data: bytes.into_iter().map(|b| b != 0).collect() })
+    Ok(Image {
+        width: w,
+        height: h,
+        data: bytes.into_iter().map(|b| b != 0).collect(),
+    })
 }
 
 /// Writes instance ids as a 16-bit PNG; fails on an id above 65535.
-pub fn write_instances_png(path: impl AsRef<Path>, ids: &InstanceImage) -> Result<(), ImageIoError> {
+pub fn write_instances_png(
+    path: impl AsRef<Path>,
+    ids: &InstanceImage,
+) -> Result<(), ImageIoError> {
     let path = path.as_ref();
     let w = ids.width as usize;
     let mut bytes = Vec::with_capacity(ids.data.len() * 2);
@@ -176,9 +256,19 @@ pub fn write_instances_png(path: impl AsRef<Path>, ids: &InstanceImage) -> Resul
 }
 
 /// Reads a 16-bit instance-id PNG.
-pub fn read_instances_png(path: impl AsRef<Path>, expected: Option<(u32, u32)>) -> Result<InstanceImage, ImageIoError> {
+pub fn read_instances_png(
+    path: impl AsRef<Path>,
+    expected: Option<(u32, u32)>,
+) -> Result<InstanceImage, ImageIoError> {
     let (w, h, bytes) = read_png_gray(path.as_ref(), png::BitDepth::Sixteen, expected)?;
-    Ok(Image { width: w, height: h, data: bytes.chunks_exact(2).map(|c| u16::from_be_bytes([c[0], c[1]]) as u32).collect() })
+    Ok(Image {
+        width: w,
+        height: h,
+        data: bytes
+            .chunks_exact(2)
+            .map(|c| u16::from_be_bytes([c[0], c[1]]) as u32)
+            .collect(),
+    })
 }
 
 /// Writes depth in metres as a single-channel (`Z`) 32-bit float OpenEXR (lossless ZIP).
@@ -187,16 +277,29 @@ pub fn write_depth_exr(path: impl AsRef<Path>, depth: &DepthImage) -> Result<(),
     let path = path.as_ref();
     let (w, h) = (depth.width as usize, depth.height as usize);
     if w == 0 || h == 0 {
-        return Err(ImageIoError::InvalidParameter { path: path.to_path_buf(), message: "the image is empty".into() });
+        return Err(ImageIoError::InvalidParameter {
+            path: path.to_path_buf(),
+            message: "the image is empty".into(),
+        });
     }
     let channel = AnyChannel::new("Z", FlatSamples::F32(depth.data.clone()));
-    let layer = Layer::new((w, h), LayerAttributes::default(), Encoding::SMALL_LOSSLESS, AnyChannels::sort(SmallVec::from_vec(vec![channel])));
+    let layer = Layer::new(
+        (w, h),
+        LayerAttributes::default(),
+        Encoding::SMALL_LOSSLESS,
+        AnyChannels::sort(SmallVec::from_vec(vec![channel])),
+    );
     let image = exr::image::Image::from_layer(layer);
-    write_atomic(path, |out| image.write().to_buffered(out).map_err(|e| codec(path, e)))
+    write_atomic(path, |out| {
+        image.write().to_buffered(out).map_err(|e| codec(path, e))
+    })
 }
 
 /// Reads a single-channel (`Z` or `Y`) OpenEXR depth map (f32 or f16 samples) in metres.
-pub fn read_depth_exr(path: impl AsRef<Path>, expected: Option<(u32, u32)>) -> Result<DepthImage, ImageIoError> {
+pub fn read_depth_exr(
+    path: impl AsRef<Path>,
+    expected: Option<(u32, u32)>,
+) -> Result<DepthImage, ImageIoError> {
     use exr::prelude::*;
     let path = path.as_ref();
     let file = File::open(path).map_err(io_err(path))?;
@@ -209,7 +312,12 @@ pub fn read_depth_exr(path: impl AsRef<Path>, expected: Option<(u32, u32)>) -> R
         .from_buffered(BufReader::new(file))
         .map_err(|e| codec(path, e))?;
     let layer = &image.layer_data;
-    let names: Vec<String> = layer.channel_data.list.iter().map(|c| c.name.to_string()).collect();
+    let names: Vec<String> = layer
+        .channel_data
+        .list
+        .iter()
+        .map(|c| c.name.to_string())
+        .collect();
     if names.len() != 1 || !(names[0] == "Z" || names[0] == "Y") {
         return Err(ImageIoError::Format {
             path: path.to_path_buf(),

@@ -33,10 +33,11 @@
 //! ```
 //! use std::sync::Arc;
 //! use ic_geometry::{glam::DVec3, look_at, Intrinsics, Pose};
-//! use ic_render::{procedural, Camera, CpuRenderer, Renderer, Scene};
+//! use ic_geometry::{glam::Vec3, shapes};
+//! use ic_render::{Camera, CpuRenderer, Renderer, Scene};
 //!
 //! // A 1 m cube, 3 m in front of a camera on the world z axis, seen head-on.
-//! let cube = Arc::new(procedural::cuboid(DVec3::splat(0.5)));
+//! let cube = Arc::new(shapes::box_mesh(Vec3::splat(0.5)).unwrap());
 //! let scene = Scene::single(cube, Pose::IDENTITY, 1);
 //! let k = Intrinsics::new(100.0, 100.0, 31.5, 23.5, 64, 48).unwrap();
 //! let eye = DVec3::new(0.0, 0.0, -3.0);
@@ -56,7 +57,7 @@ mod error;
 mod gpu;
 /// Depth, mask and instance-id images on disk (PNG, EXR), written atomically.
 pub mod io;
-/// Procedural meshes: boxes, spheres, tori and the cube room.
+/// The cube room (objects come from `ic_geometry::shapes`).
 pub mod procedural;
 mod renderer;
 mod scene;
@@ -65,11 +66,13 @@ mod sensor;
 pub use cpu::CpuRenderer;
 pub use debug::{debug_rgb, turbo_like, write_debug_png};
 pub use error::{ImageIoError, RenderError};
-pub use gpu::{parse_backends, WgpuOptions, WgpuRenderer};
-pub use renderer::{Camera, Rendering, Renderer, Scene, SceneObject, DEFAULT_NEAR, MAX_INSTANCE_ID};
+pub use gpu::{WgpuOptions, WgpuRenderer, parse_backends};
+pub use renderer::{
+    Camera, DEFAULT_NEAR, MAX_INSTANCE_ID, Renderer, Rendering, Scene, SceneObject,
+};
 pub use scene::{
-    Background, DistractorConfig, ObjectRotation, RoomConfig, SceneBuilder, SceneConfig, SceneSample, SupportPlaneConfig,
-    DISTRACTOR_ID_BASE, OBJECT_ID, ROOM_ID, SUPPORT_ID,
+    Background, DISTRACTOR_ID_BASE, DistractorConfig, OBJECT_ID, ObjectRotation, ROOM_ID,
+    RoomConfig, SUPPORT_ID, SceneBuilder, SceneConfig, SceneSample, SupportPlaneConfig,
 };
 pub use sensor::{AxialNoise, FlyingPixels, GrazingDropout, Quantisation, SensorConfig};
 

@@ -39,7 +39,9 @@ impl Scene {
 
     /// A scene with one object.
     pub fn single(mesh: Arc<Mesh>, pose: Pose, id: u32) -> Self {
-        Scene { objects: vec![SceneObject { mesh, pose, id }] }
+        Scene {
+            objects: vec![SceneObject { mesh, pose, id }],
+        }
     }
 
     /// Adds an object.
@@ -54,7 +56,9 @@ impl Scene {
             if o.id == 0 || o.id > MAX_INSTANCE_ID {
                 return Err(RenderError::InvalidInstanceId { index, id: o.id });
             }
-            o.mesh.validate().map_err(|source| RenderError::InvalidMesh { index, source })?;
+            o.mesh
+                .validate()
+                .map_err(|source| RenderError::InvalidMesh { index, source })?;
         }
         Ok(())
     }
@@ -82,16 +86,25 @@ pub struct Camera {
 impl Camera {
     /// A camera with the default near distance ([`DEFAULT_NEAR`]).
     pub fn new(intrinsics: Intrinsics, pose: Pose) -> Self {
-        Camera { intrinsics, pose, near: DEFAULT_NEAR }
+        Camera {
+            intrinsics,
+            pose,
+            near: DEFAULT_NEAR,
+        }
     }
 
     pub(crate) fn validate(&self) -> Result<(), RenderError> {
         self.intrinsics.validate()?;
         if !(self.near.is_finite() && self.near > 0.0) {
-            return Err(RenderError::Geometry(ic_geometry::GeometryError::InvalidParameter {
-                name: "near",
-                message: format!("near distance must be positive and finite, got {}", self.near),
-            }));
+            return Err(RenderError::Geometry(
+                ic_geometry::GeometryError::InvalidParameter {
+                    name: "near",
+                    message: format!(
+                        "near distance must be positive and finite, got {}",
+                        self.near
+                    ),
+                },
+            ));
         }
         Ok(())
     }
@@ -162,7 +175,11 @@ pub trait Renderer {
 
     /// Renders several views of the same scene. Backends override this where batching pays
     /// (one submission and one readback per batch on the GPU, views in parallel on the CPU).
-    fn render_batch(&mut self, scene: &Scene, cameras: &[Camera]) -> Result<Vec<Rendering>, RenderError> {
+    fn render_batch(
+        &mut self,
+        scene: &Scene,
+        cameras: &[Camera],
+    ) -> Result<Vec<Rendering>, RenderError> {
         cameras.iter().map(|c| self.render(scene, c)).collect()
     }
 
@@ -172,5 +189,9 @@ pub trait Renderer {
 
 /// Model→camera transform of every object for a camera (f64).
 pub(crate) fn model_to_camera(scene: &Scene, camera: &Camera) -> Vec<Pose> {
-    scene.objects.iter().map(|o| camera.pose.compose(&o.pose)).collect()
+    scene
+        .objects
+        .iter()
+        .map(|o| camera.pose.compose(&o.pose))
+        .collect()
 }

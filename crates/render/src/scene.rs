@@ -12,9 +12,9 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::procedural;
-use crate::renderer::{Camera, Scene, DEFAULT_NEAR};
 use crate::RenderError;
+use crate::procedural;
+use crate::renderer::{Camera, DEFAULT_NEAR, Scene};
 
 /// Instance id of the object of interest.
 pub const OBJECT_ID: u32 = 1;
@@ -66,7 +66,13 @@ pub struct RoomConfig {
 
 impl Default for RoomConfig {
     fn default() -> Self {
-        RoomConfig { side: 4.0, subdivisions: 24, bump_amplitude: 0.05, bumps_per_face: 8, seed: 0 }
+        RoomConfig {
+            side: 4.0,
+            subdivisions: 24,
+            bump_amplitude: 0.05,
+            bumps_per_face: 8,
+            seed: 0,
+        }
     }
 }
 
@@ -82,7 +88,10 @@ pub struct SupportPlaneConfig {
 
 impl Default for SupportPlaneConfig {
     fn default() -> Self {
-        SupportPlaneConfig { size: 3.0, thickness: 0.05 }
+        SupportPlaneConfig {
+            size: 3.0,
+            thickness: 0.05,
+        }
     }
 }
 
@@ -100,7 +109,11 @@ pub struct DistractorConfig {
 
 impl Default for DistractorConfig {
     fn default() -> Self {
-        DistractorConfig { count: 0, size: (0.2, 0.8), gap: (0.05, 1.0) }
+        DistractorConfig {
+            count: 0,
+            size: (0.2, 0.8),
+            gap: (0.05, 1.0),
+        }
     }
 }
 
@@ -138,7 +151,14 @@ impl Default for SceneConfig {
         SceneConfig {
             background: Background::Room,
             room: RoomConfig::default(),
-            intrinsics: Intrinsics { fx: 525.0, fy: 525.0, cx: 319.5, cy: 239.5, width: 640, height: 480 },
+            intrinsics: Intrinsics {
+                fx: 525.0,
+                fy: 525.0,
+                cx: 319.5,
+                cy: 239.5,
+                width: 640,
+                height: 480,
+            },
             view: ViewSphere::paper(2.8),
             near: DEFAULT_NEAR,
             rotation: ObjectRotation::Canonical,
@@ -154,54 +174,119 @@ impl Default for SceneConfig {
 impl SceneConfig {
     /// The object alone in empty space.
     pub fn object_only() -> Self {
-        SceneConfig { background: Background::None, ..SceneConfig::default() }
+        SceneConfig {
+            background: Background::None,
+            ..SceneConfig::default()
+        }
     }
 
     /// Checks ranges.
     pub fn validate(&self) -> Result<(), RenderError> {
-        let bad = |field: &'static str, message: String| Err(RenderError::InvalidConfig { field, message });
+        let bad = |field: &'static str, message: String| {
+            Err(RenderError::InvalidConfig { field, message })
+        };
         self.intrinsics.validate()?;
-        let range_ok = |(lo, hi): (f64, f64), min: f64| lo.is_finite() && hi.is_finite() && lo >= min && hi >= lo;
+        let range_ok = |(lo, hi): (f64, f64), min: f64| {
+            lo.is_finite() && hi.is_finite() && lo >= min && hi >= lo
+        };
         if !(self.room.side.is_finite() && self.room.side > 0.0) {
-            return bad("room.side", format!("must be positive, got {}", self.room.side));
+            return bad(
+                "room.side",
+                format!("must be positive, got {}", self.room.side),
+            );
         }
-        if !(self.room.bump_amplitude.is_finite() && self.room.bump_amplitude >= 0.0 && self.room.bump_amplitude < self.room.side / 4.0) {
-            return bad("room.bump_amplitude", format!("must be in [0, side/4), got {}", self.room.bump_amplitude));
+        if !(self.room.bump_amplitude.is_finite()
+            && self.room.bump_amplitude >= 0.0
+            && self.room.bump_amplitude < self.room.side / 4.0)
+        {
+            return bad(
+                "room.bump_amplitude",
+                format!("must be in [0, side/4), got {}", self.room.bump_amplitude),
+            );
         }
         if !(self.view.distance.is_finite() && self.view.distance > 0.0) {
-            return bad("view.distance", format!("must be positive, got {}", self.view.distance));
+            return bad(
+                "view.distance",
+                format!("must be positive, got {}", self.view.distance),
+            );
         }
         if !range_ok(self.view.elevation_deg, -90.0) || self.view.elevation_deg.1 > 90.0 {
-            return bad("view.elevation_deg", format!("{:?} is not an ordered range in [-90, 90]", self.view.elevation_deg));
+            return bad(
+                "view.elevation_deg",
+                format!(
+                    "{:?} is not an ordered range in [-90, 90]",
+                    self.view.elevation_deg
+                ),
+            );
         }
         if !range_ok(self.view.azimuth_deg, f64::NEG_INFINITY) {
-            return bad("view.azimuth_deg", format!("{:?} is not an ordered range", self.view.azimuth_deg));
+            return bad(
+                "view.azimuth_deg",
+                format!("{:?} is not an ordered range", self.view.azimuth_deg),
+            );
         }
         if !(self.near.is_finite() && self.near > 0.0) {
             return bad("near", format!("must be positive, got {}", self.near));
         }
         if !(0.0..=1.0).contains(&self.floating_probability) {
-            return bad("floating_probability", format!("must be in [0, 1], got {}", self.floating_probability));
+            return bad(
+                "floating_probability",
+                format!("must be in [0, 1], got {}", self.floating_probability),
+            );
         }
         if !range_ok(self.floating_gap, 0.0) {
-            return bad("floating_gap", format!("{:?} is not an ordered range of non-negative values", self.floating_gap));
+            return bad(
+                "floating_gap",
+                format!(
+                    "{:?} is not an ordered range of non-negative values",
+                    self.floating_gap
+                ),
+            );
         }
         if !(self.wall_margin.is_finite() && self.wall_margin >= 0.0) {
-            return bad("wall_margin", format!("must be non-negative, got {}", self.wall_margin));
+            return bad(
+                "wall_margin",
+                format!("must be non-negative, got {}", self.wall_margin),
+            );
         }
         if let Some(p) = &self.support_plane
             && !(p.size > 0.0 && p.thickness > 0.0 && p.size.is_finite() && p.thickness.is_finite())
         {
-            return bad("support_plane", format!("size and thickness must be positive, got {} and {}", p.size, p.thickness));
+            return bad(
+                "support_plane",
+                format!(
+                    "size and thickness must be positive, got {} and {}",
+                    p.size, p.thickness
+                ),
+            );
         }
         if !range_ok(self.distractors.size, 0.0) || self.distractors.size.0 <= 0.0 {
-            return bad("distractors.size", format!("{:?} is not an ordered range of positive values", self.distractors.size));
+            return bad(
+                "distractors.size",
+                format!(
+                    "{:?} is not an ordered range of positive values",
+                    self.distractors.size
+                ),
+            );
         }
         if !range_ok(self.distractors.gap, 0.0) {
-            return bad("distractors.gap", format!("{:?} is not an ordered range of non-negative values", self.distractors.gap));
+            return bad(
+                "distractors.gap",
+                format!(
+                    "{:?} is not an ordered range of non-negative values",
+                    self.distractors.gap
+                ),
+            );
         }
-        if self.distractors.count as u64 + DISTRACTOR_ID_BASE as u64 > crate::MAX_INSTANCE_ID as u64 {
-            return bad("distractors.count", format!("{} distractors do not fit 16-bit ids", self.distractors.count));
+        if self.distractors.count as u64 + DISTRACTOR_ID_BASE as u64 > crate::MAX_INSTANCE_ID as u64
+        {
+            return bad(
+                "distractors.count",
+                format!(
+                    "{} distractors do not fit 16-bit ids",
+                    self.distractors.count
+                ),
+            );
         }
         Ok(())
     }
@@ -239,7 +324,11 @@ impl SceneBuilder {
     /// Validates the configuration.
     pub fn new(config: SceneConfig) -> Result<Self, RenderError> {
         config.validate()?;
-        Ok(SceneBuilder { config, distractor_meshes: Vec::new(), room: Mutex::new(None) })
+        Ok(SceneBuilder {
+            config,
+            distractor_meshes: Vec::new(),
+            room: Mutex::new(None),
+        })
     }
 
     /// Uses these meshes (scaled to the configured size) instead of random boxes.
@@ -258,7 +347,13 @@ impl SceneBuilder {
         guard
             .get_or_insert_with(|| {
                 let r = &self.config.room;
-                Arc::new(procedural::room(r.side, r.subdivisions, r.bump_amplitude, r.bumps_per_face, r.seed))
+                Arc::new(procedural::room(
+                    r.side,
+                    r.subdivisions,
+                    r.bump_amplitude,
+                    r.bumps_per_face,
+                    r.seed,
+                ))
             })
             .clone()
     }
@@ -266,17 +361,29 @@ impl SceneBuilder {
     /// Assembles the scene for `seed` around `object` (a mesh in its model frame, expected
     /// normalised to [-1, 1]).
     pub fn build(&self, object: &Arc<Mesh>, seed: u64) -> Result<SceneSample, RenderError> {
-        object.validate().map_err(|source| RenderError::InvalidMesh { index: 0, source })?;
+        object
+            .validate()
+            .map_err(|source| RenderError::InvalidMesh { index: 0, source })?;
         let cfg = &self.config;
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let rotation = match cfg.rotation {
             ObjectRotation::Canonical => DMat3::IDENTITY,
-            ObjectRotation::Vertical => DMat3::from_rotation_z(rng.random_range(0.0..std::f64::consts::TAU)),
+            ObjectRotation::Vertical => {
+                DMat3::from_rotation_z(rng.random_range(0.0..std::f64::consts::TAU))
+            }
             ObjectRotation::Uniform => uniform_rotation(&mut rng),
         };
         // Extent of the rotated object (world axes, relative to its model origin).
-        let rotated: Vec<DVec3> = object.vertices.iter().map(|v| rotation * v.as_dvec3()).collect();
-        let (lo, hi) = rotated.iter().fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &p| (lo.min(p), hi.max(p)));
+        let rotated: Vec<DVec3> = object
+            .vertices
+            .iter()
+            .map(|v| rotation * v.as_dvec3())
+            .collect();
+        let (lo, hi) = rotated
+            .iter()
+            .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &p| {
+                (lo.min(p), hi.max(p))
+            });
         let centre_offset = 0.5 * (lo + hi);
         let half = 0.5 * (hi - lo);
         // Radius of the object's footprint around its bounding-box centre.
@@ -303,7 +410,11 @@ impl SceneBuilder {
                 let floating = rng.random_bool(cfg.floating_probability);
                 let mut found = None;
                 for _ in 0..MAX_TRIES {
-                    let lift = if floating { uniform(&mut rng, cfg.floating_gap) } else { 0.0 };
+                    let lift = if floating {
+                        uniform(&mut rng, cfg.floating_gap)
+                    } else {
+                        0.0
+                    };
                     let (lx, ly) = (h - m - half.x, h - m - half.y);
                     if lx <= 0.0 || ly <= 0.0 {
                         break;
@@ -317,13 +428,19 @@ impl SceneBuilder {
                     let centre = DVec3::new(x, y, z);
                     let vp = cfg.view.sample(&mut rng);
                     let eye = centre + vp.offset();
-                    let inside = eye.x.abs() < h - m && eye.y.abs() < h - m && eye.z > m && eye.z < cfg.room.side - m;
+                    let inside = eye.x.abs() < h - m
+                        && eye.y.abs() < h - m
+                        && eye.z > m
+                        && eye.z < cfg.room.side - m;
                     if inside {
                         found = Some((centre, vp));
                         break;
                     }
                 }
-                let (centre, vp) = found.ok_or(RenderError::PlacementFailed { what: "the object and camera in the room", tries: MAX_TRIES })?;
+                let (centre, vp) = found.ok_or(RenderError::PlacementFailed {
+                    what: "the object and camera in the room",
+                    tries: MAX_TRIES,
+                })?;
                 object_pose = Pose::new(rotation, centre - centre_offset);
                 viewpoint = vp;
                 camera_pose = vp.camera_pose(centre)?;
@@ -331,7 +448,14 @@ impl SceneBuilder {
                 scene.push(self.room_mesh(), Pose::IDENTITY, ROOM_ID);
             }
         }
-        scene.objects.insert(0, crate::SceneObject { mesh: object.clone(), pose: object_pose, id: OBJECT_ID });
+        scene.objects.insert(
+            0,
+            crate::SceneObject {
+                mesh: object.clone(),
+                pose: object_pose,
+                id: OBJECT_ID,
+            },
+        );
         // The object's bounding-box centre in the world.
         let centre = object_pose.translation + centre_offset;
 
@@ -342,8 +466,18 @@ impl SceneBuilder {
             Background::None => centre.z - half.z - 0.001,
         };
         if let Some(p) = &slab {
-            let mesh = procedural::cuboid(DVec3::new(p.size / 2.0, p.size / 2.0, p.thickness / 2.0));
-            let pose = Pose::from_translation(DVec3::new(centre.x, centre.y, slab_top_z - p.thickness / 2.0));
+            let mesh = ic_geometry::shapes::box_mesh(
+                DVec3::new(p.size / 2.0, p.size / 2.0, p.thickness / 2.0).as_vec3(),
+            )
+            .map_err(|e| RenderError::InvalidConfig {
+                field: "support_plane",
+                message: e.to_string(),
+            })?;
+            let pose = Pose::from_translation(DVec3::new(
+                centre.x,
+                centre.y,
+                slab_top_z - p.thickness / 2.0,
+            ));
             scene.push(Arc::new(mesh), pose, SUPPORT_ID);
         }
 
@@ -352,22 +486,40 @@ impl SceneBuilder {
         let eye = camera_pose.inverse().translation;
         let has_ground = slab.is_some() || cfg.background == Background::Room;
         let rest_z = |c: DVec3| match &slab {
-            Some(p) if (c.x - centre.x).abs() < p.size / 2.0 && (c.y - centre.y).abs() < p.size / 2.0 => slab_top_z,
+            Some(p)
+                if (c.x - centre.x).abs() < p.size / 2.0
+                    && (c.y - centre.y).abs() < p.size / 2.0 =>
+            {
+                slab_top_z
+            }
             _ => floor_z,
         };
         let mut placed: Vec<(DVec3, f64)> = Vec::new();
         for i in 0..cfg.distractors.count {
             let size = uniform(&mut rng, cfg.distractors.size);
             let mesh = if self.distractor_meshes.is_empty() {
-                let e = DVec3::new(rng.random_range(0.3..1.0), rng.random_range(0.3..1.0), rng.random_range(0.3..1.0));
-                procedural::cuboid(e / e.max_element() * (size / 2.0))
+                let e = DVec3::new(
+                    rng.random_range(0.3..1.0),
+                    rng.random_range(0.3..1.0),
+                    rng.random_range(0.3..1.0),
+                );
+                ic_geometry::shapes::box_mesh((e / e.max_element() * (size / 2.0)).as_vec3())
+                    .map_err(|e| RenderError::InvalidConfig {
+                        field: "distractors.size",
+                        message: e.to_string(),
+                    })?
             } else {
-                let src = &self.distractor_meshes[rng.random_range(0..self.distractor_meshes.len())];
+                let src =
+                    &self.distractor_meshes[rng.random_range(0..self.distractor_meshes.len())];
                 scaled_to(src, size)
             };
             let yaw = DMat3::from_rotation_z(rng.random_range(0.0..std::f64::consts::TAU));
             let pts: Vec<DVec3> = mesh.vertices.iter().map(|v| yaw * v.as_dvec3()).collect();
-            let (dlo, dhi) = pts.iter().fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &p| (lo.min(p), hi.max(p)));
+            let (dlo, dhi) = pts
+                .iter()
+                .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &p| {
+                    (lo.min(p), hi.max(p))
+                });
             let dr = DVec3::new(0.5 * (dhi.x - dlo.x), 0.5 * (dhi.y - dlo.y), 0.0).length();
             let dc = 0.5 * (dlo + dhi);
             let mut ok = None;
@@ -387,14 +539,22 @@ impl SceneBuilder {
                 } else {
                     let dist = footprint + dr + uniform(&mut rng, cfg.distractors.gap);
                     let ang = rng.random_range(0.0..std::f64::consts::TAU);
-                    DVec3::new(centre.x + dist * ang.cos(), centre.y + dist * ang.sin(), 0.0)
+                    DVec3::new(
+                        centre.x + dist * ang.cos(),
+                        centre.y + dist * ang.sin(),
+                        0.0,
+                    )
                 };
                 let c = DVec3::new(xy.x, xy.y, 0.0);
                 let ground = rest_z(c);
                 if has_ground && !ground.is_finite() {
                     continue; // off the slab, and there is no floor
                 }
-                let z = if has_ground { ground - dlo.z + 0.001 } else { centre.z + rng.random_range(-half.z..=half.z) - dc.z };
+                let z = if has_ground {
+                    ground - dlo.z + 0.001
+                } else {
+                    centre.z + rng.random_range(-half.z..=half.z) - dc.z
+                };
                 let pos = DVec3::new(xy.x - dc.x, xy.y - dc.y, z);
                 if cfg.background == Background::Room {
                     let h = cfg.room.side / 2.0 - cfg.wall_margin;
@@ -412,19 +572,39 @@ impl SceneBuilder {
                 break;
             }
             let Some((pos, c)) = ok else {
-                return Err(RenderError::PlacementFailed { what: "a distractor", tries: MAX_TRIES });
+                return Err(RenderError::PlacementFailed {
+                    what: "a distractor",
+                    tries: MAX_TRIES,
+                });
             };
             placed.push((c, dr));
-            scene.push(Arc::new(mesh), Pose::new(yaw, pos), DISTRACTOR_ID_BASE + i as u32);
+            scene.push(
+                Arc::new(mesh),
+                Pose::new(yaw, pos),
+                DISTRACTOR_ID_BASE + i as u32,
+            );
         }
 
-        let camera = Camera { intrinsics: cfg.intrinsics, pose: camera_pose, near: cfg.near };
-        Ok(SceneSample { scene, camera, object_pose, viewpoint })
+        let camera = Camera {
+            intrinsics: cfg.intrinsics,
+            pose: camera_pose,
+            near: cfg.near,
+        };
+        Ok(SceneSample {
+            scene,
+            camera,
+            object_pose,
+            viewpoint,
+        })
     }
 }
 
 fn uniform<R: Rng>(rng: &mut R, (lo, hi): (f64, f64)) -> f64 {
-    if hi > lo { rng.random_range(lo..=hi) } else { lo }
+    if hi > lo {
+        rng.random_range(lo..=hi)
+    } else {
+        lo
+    }
 }
 
 /// A uniformly distributed rotation (Shoemake's unit-quaternion method).
@@ -445,5 +625,12 @@ fn scaled_to(mesh: &Mesh, size: f64) -> Mesh {
     let b = mesh.bounds().expect("validated mesh");
     let s = size / b.extent().max_element().max(1e-12);
     let c = b.centre();
-    Mesh { vertices: mesh.vertices.iter().map(|v| ((v.as_dvec3() - c) * s).as_vec3()).collect(), triangles: mesh.triangles.clone() }
+    Mesh {
+        vertices: mesh
+            .vertices
+            .iter()
+            .map(|v| ((v.as_dvec3() - c) * s).as_vec3())
+            .collect(),
+        triangles: mesh.triangles.clone(),
+    }
 }

@@ -24,7 +24,11 @@ pub struct AxialNoise {
 
 impl Default for AxialNoise {
     fn default() -> Self {
-        AxialNoise { a: 0.0012, b: 0.0019, z0: 0.4 }
+        AxialNoise {
+            a: 0.0012,
+            b: 0.0019,
+            z0: 0.4,
+        }
     }
 }
 
@@ -44,7 +48,11 @@ pub enum Quantisation {
     /// A structured-light sensor: disparity `d = focal·baseline/z` (pixels) rounded to
     /// `1/subpixel` pixel, then `z = focal·baseline/d`. Kinect v1: focal 580, baseline 0.075,
     /// subpixel 8.
-    Disparity { focal: f64, baseline: f64, subpixel: f64 },
+    Disparity {
+        focal: f64,
+        baseline: f64,
+        subpixel: f64,
+    },
 }
 
 /// Missing returns where the surface is seen at a grazing angle.
@@ -57,7 +65,9 @@ pub struct GrazingDropout {
 
 impl Default for GrazingDropout {
     fn default() -> Self {
-        GrazingDropout { max_angle_deg: 80.0 }
+        GrazingDropout {
+            max_angle_deg: 80.0,
+        }
     }
 }
 
@@ -74,7 +84,10 @@ pub struct FlyingPixels {
 
 impl Default for FlyingPixels {
     fn default() -> Self {
-        FlyingPixels { edge_threshold: 0.05, probability: 0.5 }
+        FlyingPixels {
+            edge_threshold: 0.05,
+            probability: 0.5,
+        }
     }
 }
 
@@ -91,7 +104,10 @@ pub struct SensorConfig {
 impl SensorConfig {
     /// Whether any effect is on.
     pub fn is_ideal(&self) -> bool {
-        self.noise.is_none() && self.quantisation.is_none() && self.grazing.is_none() && self.flying_pixels.is_none()
+        self.noise.is_none()
+            && self.quantisation.is_none()
+            && self.grazing.is_none()
+            && self.flying_pixels.is_none()
     }
 
     /// Applies the configured effects in place; deterministic for a given `seed`.
@@ -113,7 +129,12 @@ impl SensorConfig {
                     // The neighbour with the largest jump.
                     let mut best: Option<f32> = None;
                     let mut jump = f.edge_threshold as f32;
-                    let neighbours = [(u > 0).then(|| i - 1), (u + 1 < w).then(|| i + 1), (v > 0).then(|| i - w), (v + 1 < h).then(|| i + w)];
+                    let neighbours = [
+                        (u > 0).then(|| i - 1),
+                        (u + 1 < w).then(|| i + 1),
+                        (v > 0).then(|| i - w),
+                        (v + 1 < h).then(|| i + w),
+                    ];
                     for n in neighbours.into_iter().flatten() {
                         let zn = clean[n];
                         if zn > 0.0 && (zn - z).abs() > jump {
@@ -151,7 +172,11 @@ impl SensorConfig {
                 let out = match q {
                     Quantisation::Step { step } if step > 0.0 => (zf / step).round() * step,
                     Quantisation::Step { .. } => zf,
-                    Quantisation::Disparity { focal, baseline, subpixel } => {
+                    Quantisation::Disparity {
+                        focal,
+                        baseline,
+                        subpixel,
+                    } => {
                         let fb = focal * baseline;
                         let d = (fb / zf * subpixel).round() / subpixel;
                         if d > 0.0 { fb / d } else { 0.0 }
@@ -182,7 +207,10 @@ mod tests {
         let clean = r.clone();
         SensorConfig::default().apply(&mut r, 1);
         assert_eq!(r, clean);
-        let cfg = SensorConfig { noise: Some(AxialNoise::default()), ..Default::default() };
+        let cfg = SensorConfig {
+            noise: Some(AxialNoise::default()),
+            ..Default::default()
+        };
         let mut a = flat(2.0);
         cfg.apply(&mut a, 7);
         let mut b = flat(2.0);
@@ -190,7 +218,14 @@ mod tests {
         assert_eq!(a, b, "seeded");
         let n = a.depth.data.len() as f64;
         let mean = a.depth.data.iter().map(|&z| z as f64).sum::<f64>() / n;
-        let sd = (a.depth.data.iter().map(|&z| (z as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
+        let sd = (a
+            .depth
+            .data
+            .iter()
+            .map(|&z| (z as f64 - mean).powi(2))
+            .sum::<f64>()
+            / n)
+            .sqrt();
         let want = AxialNoise::default().sigma(2.0);
         assert!((sd - want).abs() < 0.1 * want, "sd {sd} vs {want}");
         assert!((mean - 2.0).abs() < 3.0 * want / n.sqrt() + 1e-6);
@@ -199,17 +234,32 @@ mod tests {
     #[test]
     fn quantisation_grazing_and_flying_pixels() {
         let mut r = flat(1.23456);
-        SensorConfig { quantisation: Some(Quantisation::Step { step: 0.001 }), ..Default::default() }.apply(&mut r, 0);
+        SensorConfig {
+            quantisation: Some(Quantisation::Step { step: 0.001 }),
+            ..Default::default()
+        }
+        .apply(&mut r, 0);
         assert!((r.depth.data[0] - 1.235).abs() < 1e-6);
         let mut r = flat(2.0);
-        SensorConfig { quantisation: Some(Quantisation::Disparity { focal: 580.0, baseline: 0.075, subpixel: 8.0 }), ..Default::default() }
-            .apply(&mut r, 0);
+        SensorConfig {
+            quantisation: Some(Quantisation::Disparity {
+                focal: 580.0,
+                baseline: 0.075,
+                subpixel: 8.0,
+            }),
+            ..Default::default()
+        }
+        .apply(&mut r, 0);
         // d = 21.75 exactly, so 2.0 is representable.
         assert!((r.depth.data[0] - 2.0).abs() < 1e-6);
 
         let mut r = flat(2.0);
         r.incidence.data[5] = 0.1; // ≈ 84°
-        SensorConfig { grazing: Some(GrazingDropout::default()), ..Default::default() }.apply(&mut r, 0);
+        SensorConfig {
+            grazing: Some(GrazingDropout::default()),
+            ..Default::default()
+        }
+        .apply(&mut r, 0);
         assert_eq!(r.depth.data[5], 0.0);
         assert_eq!(r.depth.data[6], 2.0);
         assert_eq!(r.instances.data[5], 1, "ids are kept");
@@ -221,7 +271,13 @@ mod tests {
                 r.depth.data[v * 40 + u] = 3.0;
             }
         }
-        let cfg = SensorConfig { flying_pixels: Some(FlyingPixels { edge_threshold: 0.5, probability: 1.0 }), ..Default::default() };
+        let cfg = SensorConfig {
+            flying_pixels: Some(FlyingPixels {
+                edge_threshold: 0.5,
+                probability: 1.0,
+            }),
+            ..Default::default()
+        };
         cfg.apply(&mut r, 3);
         for v in 0..30 {
             let (a, b) = (r.depth.data[v * 40 + 19], r.depth.data[v * 40 + 20]);

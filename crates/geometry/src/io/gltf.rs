@@ -31,7 +31,8 @@ use crate::{Mesh, MeshError};
 pub fn read_gltf(bytes: &[u8], base_dir: Option<&Path>, path: &Path) -> Result<Mesh, MeshError> {
     let fail = |m: String| format_error(path, m);
     check_glb_header(bytes).map_err(fail)?;
-    let gltf = ::gltf::Gltf::from_slice_without_validation(bytes).map_err(|e| fail(format!("invalid glTF: {e}")))?;
+    let gltf = ::gltf::Gltf::from_slice_without_validation(bytes)
+        .map_err(|e| fail(format!("invalid glTF: {e}")))?;
     let ::gltf::Gltf { document, blob } = gltf;
     validate(document.as_json()).map_err(fail)?;
     let buffers = ::gltf::import_buffers(&document, base_dir, blob)
@@ -39,13 +40,16 @@ pub fn read_gltf(bytes: &[u8], base_dir: Option<&Path>, path: &Path) -> Result<M
     let buffers: Vec<&[u8]> = buffers.iter().map(|b| &b.0[..]).collect();
 
     let mut out = Mesh::default();
-    let scene = document.default_scene().or_else(|| document.scenes().next());
+    let scene = document
+        .default_scene()
+        .or_else(|| document.scenes().next());
     match scene {
         Some(scene) => {
             let node_count = document.nodes().count();
             let mut visited = vec![false; node_count];
             // Depth-first in document order: the stack holds siblings reversed.
-            let mut stack: Vec<(::gltf::Node, DMat4)> = scene.nodes().map(|n| (n, DMat4::IDENTITY)).collect();
+            let mut stack: Vec<(::gltf::Node, DMat4)> =
+                scene.nodes().map(|n| (n, DMat4::IDENTITY)).collect();
             stack.reverse();
             while let Some((node, parent)) = stack.pop() {
                 let seen = visited
@@ -58,7 +62,8 @@ pub fn read_gltf(bytes: &[u8], base_dir: Option<&Path>, path: &Path) -> Result<M
                     )));
                 }
                 *seen = true;
-                let local = DMat4::from_cols_array_2d(&node.transform().matrix().map(|c| c.map(f64::from)));
+                let local =
+                    DMat4::from_cols_array_2d(&node.transform().matrix().map(|c| c.map(f64::from)));
                 let world = parent * local;
                 if let Some(mesh) = node.mesh() {
                     append_mesh(&mut out, &mesh, &world, &buffers, path)?;
@@ -89,7 +94,9 @@ fn check_glb_header(bytes: &[u8]) -> Result<(), String> {
         .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
         .ok_or("the GLB header is truncated")?;
     if length < 12 {
-        return Err(format!("the GLB header declares a total length of {length} bytes, less than the header itself"));
+        return Err(format!(
+            "the GLB header declares a total length of {length} bytes, less than the header itself"
+        ));
     }
     Ok(())
 }
@@ -102,7 +109,10 @@ fn validate(root: &::gltf::json::Root) -> Result<(), String> {
     use ::gltf::json::validation::{Checked, Validate};
     for (m, mesh) in root.meshes.iter().enumerate() {
         for (p, primitive) in mesh.primitives.iter().enumerate() {
-            if let Some(index) = primitive.attributes.get(&Checked::Valid(JsonSemantic::Positions)) {
+            if let Some(index) = primitive
+                .attributes
+                .get(&Checked::Valid(JsonSemantic::Positions))
+            {
                 if index.value() >= root.accessors.len() {
                     return Err(format!(
                         "mesh {m} primitive {p}: POSITION refers to accessor {}, but there are {}",
@@ -142,14 +152,19 @@ fn accessor_data<'a>(
         .ok_or_else(|| format!("buffer {} is missing", view.buffer().index()))?;
     let stride = view.stride().unwrap_or(element_size);
     if stride < element_size {
-        return Err(format!("byte stride {stride} is smaller than the element size {element_size}"));
+        return Err(format!(
+            "byte stride {stride} is smaller than the element size {element_size}"
+        ));
     }
     let view_end = view
         .offset()
         .checked_add(view.length())
         .filter(|&end| end <= buffer.len())
         .ok_or_else(|| format!("buffer view {} lies outside its buffer", view.index()))?;
-    let start = view.offset().checked_add(accessor.offset()).ok_or("accessor offset overflows")?;
+    let start = view
+        .offset()
+        .checked_add(accessor.offset())
+        .ok_or("accessor offset overflows")?;
     let count = accessor.count();
     if count > 0 {
         let end = (count - 1)
@@ -165,7 +180,11 @@ fn accessor_data<'a>(
             ));
         }
     }
-    let data = if count > 0 { &buffer[start..view_end] } else { &[][..] };
+    let data = if count > 0 {
+        &buffer[start..view_end]
+    } else {
+        &[][..]
+    };
     Ok((data, stride, count))
 }
 
@@ -192,13 +211,20 @@ fn read_positions(accessor: &::gltf::Accessor, buffers: &[&[u8]]) -> Result<Vec<
 
 fn read_indices(accessor: &::gltf::Accessor, buffers: &[&[u8]]) -> Result<Vec<u32>, String> {
     if accessor.dimensions() != Dimensions::Scalar {
-        return Err(format!("indices must be SCALAR, found {:?}", accessor.dimensions()));
+        return Err(format!(
+            "indices must be SCALAR, found {:?}",
+            accessor.dimensions()
+        ));
     }
     let size = match accessor.data_type() {
         DataType::U8 => 1,
         DataType::U16 => 2,
         DataType::U32 => 4,
-        other => return Err(format!("indices must be unsigned integers, found {other:?}")),
+        other => {
+            return Err(format!(
+                "indices must be unsigned integers, found {other:?}"
+            ));
+        }
     };
     let (data, stride, count) = accessor_data(accessor, size, buffers)?;
     Ok((0..count)
@@ -224,9 +250,14 @@ fn append_mesh(
         let name = format!("mesh {} primitive {}", mesh.index(), primitive.index());
         let fail = |m: String| format_error(path, format!("{name}: {m}"));
         if primitive.mode() != Mode::Triangles {
-            return Err(fail(format!("mode {:?} is not supported (only triangles)", primitive.mode())));
+            return Err(fail(format!(
+                "mode {:?} is not supported (only triangles)",
+                primitive.mode()
+            )));
         }
-        let positions = primitive.get(&Semantic::Positions).ok_or_else(|| fail("no POSITION attribute".into()))?;
+        let positions = primitive
+            .get(&Semantic::Positions)
+            .ok_or_else(|| fail("no POSITION attribute".into()))?;
         let positions = read_positions(&positions, buffers).map_err(fail)?;
         let count = positions.len();
         let indices = match primitive.indices() {
@@ -234,7 +265,10 @@ fn append_mesh(
             None => (0..count as u32).collect(),
         };
         if indices.len() % 3 != 0 {
-            return Err(fail(format!("{} indices is not a multiple of 3", indices.len())));
+            return Err(fail(format!(
+                "{} indices is not a multiple of 3",
+                indices.len()
+            )));
         }
         let offset = out.vertices.len();
         if offset + count > u32::MAX as usize {
@@ -243,7 +277,9 @@ fn append_mesh(
         for (i, p) in positions.iter().enumerate() {
             let q = world.transform_point3(p.as_dvec3()).as_vec3();
             if !q.is_finite() {
-                return Err(fail(format!("vertex {i} is not finite after the node transform ({q})")));
+                return Err(fail(format!(
+                    "vertex {i} is not finite after the node transform ({q})"
+                )));
             }
             out.vertices.push(q);
         }
@@ -251,9 +287,15 @@ fn append_mesh(
         let mirrored = world.determinant() < 0.0;
         for (t, tri) in indices.chunks_exact(3).enumerate() {
             if let Some(&bad) = tri.iter().find(|&&i| i as usize >= count) {
-                return Err(fail(format!("triangle {t} refers to vertex {bad}, but there are {count}")));
+                return Err(fail(format!(
+                    "triangle {t} refers to vertex {bad}, but there are {count}"
+                )));
             }
-            let tri = if mirrored { [tri[0], tri[2], tri[1]] } else { [tri[0], tri[1], tri[2]] };
+            let tri = if mirrored {
+                [tri[0], tri[2], tri[1]]
+            } else {
+                [tri[0], tri[1], tri[2]]
+            };
             out.triangles.push(tri.map(|i| i + offset as u32));
         }
     }

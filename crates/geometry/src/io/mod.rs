@@ -1,12 +1,15 @@
 //! Mesh and point-cloud file formats.
 //!
-//! Reading: [`load_mesh`] picks the reader from the file extension (case-insensitive):
-//! `.obj` ([`read_obj`]), `.off` ([`read_off`]), `.ply` ([`read_ply`]), `.gltf`/`.glb`
-//! ([`read_gltf`]). Point clouds are read back from PLY with [`read_ply_cloud`].
+//! Reading: [`load_mesh`](crate::io::load_mesh) picks the reader from the file extension
+//! (case-insensitive): `.obj` ([`read_obj`](crate::io::read_obj)), `.off`
+//! ([`read_off`](crate::io::read_off)), `.ply` ([`read_ply`](crate::io::read_ply)), `.gltf` and
+//! `.glb` ([`read_gltf`](crate::io::read_gltf)). Point clouds are read back from PLY with
+//! [`read_ply_cloud`](crate::io::read_ply_cloud).
 //!
-//! Writing: [`write_ply`] (point cloud, optionally with normals and colours) and
-//! [`write_mesh_ply`] (vertices and triangles). Writes are atomic: the data goes to a temporary
-//! file in the target directory, which is renamed over the target only once complete.
+//! Writing: [`write_ply`](crate::io::write_ply) (point cloud, optionally with normals and
+//! colours) and [`write_mesh_ply`](crate::io::write_mesh_ply) (vertices and triangles). Writes
+//! are atomic: the data goes to a temporary file in the target directory, which is renamed over
+//! the target only once complete.
 //!
 //! Units: coordinates are returned exactly as stored in the file (after the node transforms of
 //! a glTF scene); nothing is scaled or centred at load time — see [`crate::Mesh::normalise`].
@@ -70,7 +73,10 @@ pub fn load_mesh(path: impl AsRef<Path>) -> Result<Mesh, MeshError> {
             let bytes = std::fs::read(path).map_err(|e| io_error(path, e))?;
             read_gltf(&bytes, path.parent(), path)
         }
-        _ => Err(MeshError::UnsupportedFormat { path: path.to_path_buf(), extension }),
+        _ => Err(MeshError::UnsupportedFormat {
+            path: path.to_path_buf(),
+            extension,
+        }),
     }
 }
 
@@ -79,25 +85,40 @@ fn open(path: &Path) -> Result<std::fs::File, MeshError> {
 }
 
 pub(crate) fn io_error(path: &Path, source: std::io::Error) -> MeshError {
-    MeshError::Io { path: path.to_path_buf(), source }
+    MeshError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
 }
 
 pub(crate) fn parse_error(path: &Path, line: usize, message: impl Into<String>) -> MeshError {
-    MeshError::Parse { path: path.to_path_buf(), line, message: message.into() }
+    MeshError::Parse {
+        path: path.to_path_buf(),
+        line,
+        message: message.into(),
+    }
 }
 
 pub(crate) fn format_error(path: &Path, message: impl Into<String>) -> MeshError {
-    MeshError::Format { path: path.to_path_buf(), message: message.into() }
+    MeshError::Format {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
 }
 
 pub(crate) fn data_error(path: &Path, source: MeshDataError) -> MeshError {
-    MeshError::Data { path: path.to_path_buf(), source }
+    MeshError::Data {
+        path: path.to_path_buf(),
+        source,
+    }
 }
 
 /// Reads everything from `reader`.
 pub(crate) fn read_all(mut reader: impl Read, path: &Path) -> Result<Vec<u8>, MeshError> {
     let mut bytes = Vec::new();
-    reader.read_to_end(&mut bytes).map_err(|e| io_error(path, e))?;
+    reader
+        .read_to_end(&mut bytes)
+        .map_err(|e| io_error(path, e))?;
     Ok(bytes)
 }
 
@@ -124,7 +145,11 @@ pub(crate) fn write_atomic(
         name.push(file_name);
         name.push(format!(".{}.{n}.tmp", std::process::id()));
         let tmp = dir.join(name);
-        match std::fs::OpenOptions::new().write(true).create_new(true).open(&tmp) {
+        match std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&tmp)
+        {
             Ok(f) => break (f, tmp),
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
             Err(e) => return Err(io_error(path, e)),
@@ -160,7 +185,10 @@ mod tests {
             other => panic!("unexpected {other:?}"),
         }
         assert!(err.to_string().contains("chair.STL"));
-        assert!(matches!(load_mesh("no_extension"), Err(MeshError::UnsupportedFormat { .. })));
+        assert!(matches!(
+            load_mesh("no_extension"),
+            Err(MeshError::UnsupportedFormat { .. })
+        ));
     }
 
     #[test]
@@ -172,7 +200,8 @@ mod tests {
 
     #[test]
     fn io_atomic_write_leaves_no_temporary_file_on_failure() {
-        let dir = std::env::temp_dir().join(format!("ic_geometry_io_atomic_{}", std::process::id()));
+        let dir =
+            std::env::temp_dir().join(format!("ic_geometry_io_atomic_{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let target = dir.join("out.bin");
         std::fs::write(&target, b"old").unwrap();
@@ -182,7 +211,10 @@ mod tests {
         });
         assert!(err.is_err());
         assert_eq!(std::fs::read(&target).unwrap(), b"old");
-        let leftovers: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
+        let leftovers: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
         assert_eq!(leftovers.len(), 1, "{leftovers:?}");
         write_atomic(&target, |w| w.write_all(b"new")).unwrap();
         assert_eq!(std::fs::read(&target).unwrap(), b"new");

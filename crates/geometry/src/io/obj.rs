@@ -40,7 +40,10 @@ struct Totals {
 
 fn utf8_text<'a>(bytes: &'a [u8], path: &Path) -> Result<&'a str, MeshError> {
     std::str::from_utf8(bytes).map_err(|e| {
-        let line = 1 + bytes[..e.valid_up_to()].iter().filter(|&&b| b == b'\n').count();
+        let line = 1 + bytes[..e.valid_up_to()]
+            .iter()
+            .filter(|&&b| b == b'\n')
+            .count();
         parse_error(path, line, "the line is not valid UTF-8 text")
     })
 }
@@ -80,15 +83,23 @@ fn parse_floats<'a>(
 
 /// Resolves one index of a face corner (1-based, or negative = relative to the elements defined
 /// so far). Returns an error message if it cannot refer to an element.
-fn check_index(value: isize, so_far: usize, total: usize, kind: &str) -> Result<(), String> {
+fn check_index(
+    value: isize,
+    so_far: usize,
+    total: usize,
+    kind: (&str, &str),
+) -> Result<(), String> {
+    let (one, many) = kind;
     if value < 0 {
         if (so_far as isize) + value < 0 {
             return Err(format!(
-                "relative {kind} index {value}, but only {so_far} {kind}s are defined before this line"
+                "relative {one} index {value}, but only {so_far} {many} are defined before this line"
             ));
         }
     } else if value as usize > total {
-        return Err(format!("{kind} index {value}, but the file has {total} {kind}s"));
+        return Err(format!(
+            "{one} index {value}, but the file has {total} {many}"
+        ));
     }
     Ok(())
 }
@@ -110,7 +121,11 @@ fn validate(text: &str, path: &Path) -> Result<(), MeshError> {
                     0 => {}
                     1 => {
                         let w = extra[0].parse::<f32>().map_err(|_| {
-                            parse_error(path, line_no, format!("{what}: w '{}' is not a number", extra[0]))
+                            parse_error(
+                                path,
+                                line_no,
+                                format!("{what}: w '{}' is not a number", extra[0]),
+                            )
                         })?;
                         if w == 0.0 {
                             return Err(parse_error(path, line_no, format!("{what} has w = 0")));
@@ -124,21 +139,40 @@ fn validate(text: &str, path: &Path) -> Result<(), MeshError> {
                         return Err(parse_error(
                             path,
                             line_no,
-                            format!("{what}: expected 'x y z', 'x y z w' or 'x y z r g b', found {} values", 3 + n),
+                            format!(
+                                "{what}: expected 'x y z', 'x y z w' or 'x y z r g b', found {} values",
+                                3 + n
+                            ),
                         ));
                     }
                 }
                 if let Some(bad) = xyz.iter().find(|c| !c.is_finite()) {
-                    return Err(parse_error(path, line_no, format!("{what} has a non-finite coordinate ({bad})")));
+                    return Err(parse_error(
+                        path,
+                        line_no,
+                        format!("{what} has a non-finite coordinate ({bad})"),
+                    ));
                 }
                 so_far.positions += 1;
             }
             Some("vt") => {
-                parse_floats(&mut words, 2, path, line_no, &format!("texture coordinate {}", so_far.texcoords))?;
+                parse_floats(
+                    &mut words,
+                    2,
+                    path,
+                    line_no,
+                    &format!("texture coordinate {}", so_far.texcoords),
+                )?;
                 so_far.texcoords += 1;
             }
             Some("vn") => {
-                parse_floats(&mut words, 3, path, line_no, &format!("normal {}", so_far.normals))?;
+                parse_floats(
+                    &mut words,
+                    3,
+                    path,
+                    line_no,
+                    &format!("normal {}", so_far.normals),
+                )?;
                 so_far.normals += 1;
             }
             Some(keyword @ ("f" | "l")) => {
@@ -146,16 +180,31 @@ fn validate(text: &str, path: &Path) -> Result<(), MeshError> {
                 for word in words {
                     corners += 1;
                     let mut parts = word.split('/');
-                    for (slot, kind) in ["vertex", "texture coordinate", "normal"].iter().enumerate() {
+                    for (slot, kind) in [
+                        ("vertex", "vertices"),
+                        ("texture coordinate", "texture coordinates"),
+                        ("normal", "normals"),
+                    ]
+                    .iter()
+                    .enumerate()
+                    {
                         let Some(part) = parts.next() else { break };
                         if part.is_empty() {
                             if slot == 0 {
-                                return Err(parse_error(path, line_no, format!("'{word}' has no vertex index")));
+                                return Err(parse_error(
+                                    path,
+                                    line_no,
+                                    format!("'{word}' has no vertex index"),
+                                ));
                             }
                             continue;
                         }
                         let value = part.parse::<isize>().map_err(|_| {
-                            parse_error(path, line_no, format!("'{word}': '{part}' is not an integer index"))
+                            parse_error(
+                                path,
+                                line_no,
+                                format!("'{word}': '{part}' is not an integer index"),
+                            )
                         })?;
                         let (count, total) = match slot {
                             0 => (so_far.positions, totals.positions),
@@ -176,15 +225,23 @@ fn validate(text: &str, path: &Path) -> Result<(), MeshError> {
                         if slot > 0 && value > 0 && total == 0 {
                             continue;
                         }
-                        check_index(value, count, total, kind)
+                        check_index(value, count, total, *kind)
                             .map_err(|m| parse_error(path, line_no, format!("'{word}': {m}")))?;
                     }
                     if parts.next().is_some() {
-                        return Err(parse_error(path, line_no, format!("'{word}' has more than three indices")));
+                        return Err(parse_error(
+                            path,
+                            line_no,
+                            format!("'{word}' has more than three indices"),
+                        ));
                     }
                 }
                 if corners == 0 {
-                    return Err(parse_error(path, line_no, format!("'{keyword}' without vertices")));
+                    return Err(parse_error(
+                        path,
+                        line_no,
+                        format!("'{keyword}' without vertices"),
+                    ));
                 }
             }
             _ => {}
@@ -226,7 +283,10 @@ impl BufRead for LineCounting<'_> {
 
     fn consume(&mut self, amount: usize) {
         let end = (self.position + amount).min(self.bytes.len());
-        self.newlines += self.bytes[self.position..end].iter().filter(|&&b| b == b'\n').count();
+        self.newlines += self.bytes[self.position..end]
+            .iter()
+            .filter(|&&b| b == b'\n')
+            .count();
         self.position = end;
     }
 }
@@ -236,6 +296,8 @@ pub(crate) fn parse_obj(bytes: &[u8], path: &Path) -> Result<Mesh, MeshError> {
     let text = utf8_text(bytes, path)?;
     validate(text, path)?;
 
+    // `..Default::default()` covers fields that exist only with some tobj features enabled.
+    #[allow(clippy::needless_update)]
     let options = tobj::LoadOptions {
         triangulate: true,
         single_index: true,
@@ -243,25 +305,40 @@ pub(crate) fn parse_obj(bytes: &[u8], path: &Path) -> Result<Mesh, MeshError> {
         ignore_lines: true,
         ..Default::default()
     };
-    let mut reader = LineCounting { bytes, position: 0, newlines: 0 };
-    let loaded = tobj::load_obj_buf(&mut reader, &options, |_| Err(tobj::LoadError::OpenFileFailed));
-    let (models, _materials) = loaded.map_err(|e| parse_error(path, reader.current_line(), e.to_string()))?;
+    let mut reader = LineCounting {
+        bytes,
+        position: 0,
+        newlines: 0,
+    };
+    let loaded = tobj::load_obj_buf(&mut reader, &options, |_| {
+        Err(tobj::LoadError::OpenFileFailed)
+    });
+    let (models, _materials) =
+        loaded.map_err(|e| parse_error(path, reader.current_line(), e.to_string()))?;
 
     let mut mesh = Mesh::default();
     for model in &models {
         let m = &model.mesh;
         let offset = mesh.vertices.len();
-        mesh.vertices.extend(m.positions.chunks_exact(3).map(|p| Vec3::new(p[0], p[1], p[2])));
+        mesh.vertices.extend(
+            m.positions
+                .chunks_exact(3)
+                .map(|p| Vec3::new(p[0], p[1], p[2])),
+        );
         let count = mesh.vertices.len() - offset;
         for t in m.indices.chunks_exact(3) {
             if let Some(&bad) = t.iter().find(|&&i| i as usize >= count) {
                 // Not expected from tobj; kept so a library change cannot make us panic later.
                 return Err(super::format_error(
                     path,
-                    format!("object '{}': triangle refers to vertex {bad} of {count}", model.name),
+                    format!(
+                        "object '{}': triangle refers to vertex {bad} of {count}",
+                        model.name
+                    ),
                 ));
             }
-            mesh.triangles.push([t[0], t[1], t[2]].map(|i| i + offset as u32));
+            mesh.triangles
+                .push([t[0], t[1], t[2]].map(|i| i + offset as u32));
         }
     }
     if mesh.triangles.is_empty() {
@@ -290,7 +367,9 @@ mod tests {
 
     #[test]
     fn io_obj_quads_and_objects_are_merged() {
-        let m = parse("o a\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\no b\nv 0 0 1\nf -5 -4 -1\n").unwrap();
+        let m =
+            parse("o a\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\no b\nv 0 0 1\nf -5 -4 -1\n")
+                .unwrap();
         assert_eq!(m.triangles.len(), 3);
         assert_eq!(m.vertices.len(), 7);
         assert_eq!(m.triangles[2], [4, 5, 6]);
@@ -311,7 +390,16 @@ mod tests {
         let e = parse("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n").unwrap_err();
         assert!(e.to_string().contains("start at 1"), "{e}");
         let e = parse("v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2\n").unwrap_err();
-        assert!(matches!(e, MeshError::Data { source: MeshDataError::NoFaces, .. }), "{e:?}");
+        assert!(
+            matches!(
+                e,
+                MeshError::Data {
+                    source: MeshDataError::NoFaces,
+                    ..
+                }
+            ),
+            "{e:?}"
+        );
         // An error only tobj detects (colour with two components) still gets its line.
         let e = parse("v 0 0 0\nv 1 0 0\nv 0 1 0 1 1\nf 1 2 3\n").unwrap_err();
         assert_eq!(line_of(&e), 3);

@@ -42,7 +42,12 @@ struct ContentLines<'a> {
 
 impl<'a> ContentLines<'a> {
     fn new(bytes: &'a [u8], path: &'a Path) -> Self {
-        ContentLines { bytes, offset: 0, line: 0, path }
+        ContentLines {
+            bytes,
+            offset: 0,
+            line: 0,
+            path,
+        }
     }
 
     /// Bytes not yet consumed.
@@ -58,8 +63,9 @@ impl<'a> ContentLines<'a> {
             let raw = &rest[..end];
             self.offset += (end + 1).min(rest.len());
             self.line += 1;
-            let text = std::str::from_utf8(raw)
-                .map_err(|_| parse_error(self.path, self.line, "the line is not valid UTF-8 text"))?;
+            let text = std::str::from_utf8(raw).map_err(|_| {
+                parse_error(self.path, self.line, "the line is not valid UTF-8 text")
+            })?;
             let text = match text.find('#') {
                 Some(i) => &text[..i],
                 None => text,
@@ -87,14 +93,28 @@ fn off_keyword_len(s: &str) -> Option<usize> {
     rest.strip_prefix("OFF").map(|after| s.len() - after.len())
 }
 
-fn parse_count(path: &Path, line: usize, token: Option<&str>, what: &str) -> Result<usize, MeshError> {
-    let token = token.ok_or_else(|| parse_error(path, line, format!("missing the {what} count")))?;
+fn parse_count(
+    path: &Path,
+    line: usize,
+    token: Option<&str>,
+    what: &str,
+) -> Result<usize, MeshError> {
+    let token =
+        token.ok_or_else(|| parse_error(path, line, format!("missing the {what} count")))?;
     if token.starts_with('-') {
-        return Err(parse_error(path, line, format!("negative {what} count {token}")));
+        return Err(parse_error(
+            path,
+            line,
+            format!("negative {what} count {token}"),
+        ));
     }
-    token
-        .parse::<usize>()
-        .map_err(|_| parse_error(path, line, format!("the {what} count '{token}' is not a non-negative integer")))
+    token.parse::<usize>().map_err(|_| {
+        parse_error(
+            path,
+            line,
+            format!("the {what} count '{token}' is not a non-negative integer"),
+        )
+    })
 }
 
 pub(crate) fn parse_off(bytes: &[u8], path: &Path) -> Result<Mesh, MeshError> {
@@ -102,18 +122,30 @@ pub(crate) fn parse_off(bytes: &[u8], path: &Path) -> Result<Mesh, MeshError> {
     let mut lines = ContentLines::new(bytes, path);
 
     // Header keyword, possibly fused with the counts ("OFF490 518 0").
-    let (header_line, header) = lines
-        .next_line()?
-        .ok_or_else(|| parse_error(path, lines.last_line(), "empty file: expected the 'OFF' header"))?;
+    let (header_line, header) = lines.next_line()?.ok_or_else(|| {
+        parse_error(
+            path,
+            lines.last_line(),
+            "empty file: expected the 'OFF' header",
+        )
+    })?;
     let keyword = off_keyword_len(header).ok_or_else(|| {
         let shown: String = header.chars().take(40).collect();
-        parse_error(path, header_line, format!("expected the 'OFF' header, found '{shown}'"))
+        parse_error(
+            path,
+            header_line,
+            format!("expected the 'OFF' header, found '{shown}'"),
+        )
     })?;
     let mut counts_line = header_line;
     let mut counts = header[keyword..].trim();
     if counts.is_empty() {
         let (l, text) = lines.next_line()?.ok_or_else(|| {
-            parse_error(path, lines.last_line(), "the file ends before the vertex and face counts")
+            parse_error(
+                path,
+                lines.last_line(),
+                "the file ends before the vertex and face counts",
+            )
         })?;
         counts_line = l;
         counts = text;
@@ -140,10 +172,18 @@ pub(crate) fn parse_off(bytes: &[u8], path: &Path) -> Result<Mesh, MeshError> {
         let mut xyz = [0f32; 3];
         for (axis, value) in xyz.iter_mut().enumerate() {
             let token = tokens.next().ok_or_else(|| {
-                parse_error(path, line, format!("vertex {vertex} has {axis} coordinates, expected 3"))
+                parse_error(
+                    path,
+                    line,
+                    format!("vertex {vertex} has {axis} coordinates, expected 3"),
+                )
             })?;
             *value = token.parse::<f32>().map_err(|_| {
-                parse_error(path, line, format!("vertex {vertex}: '{token}' is not a number"))
+                parse_error(
+                    path,
+                    line,
+                    format!("vertex {vertex}: '{token}' is not a number"),
+                )
             })?;
             if !value.is_finite() {
                 return Err(parse_error(
@@ -159,33 +199,59 @@ pub(crate) fn parse_off(bytes: &[u8], path: &Path) -> Result<Mesh, MeshError> {
     let mut triangles = Vec::with_capacity(face_count.min(lines.remaining() / 8));
     for face in 0..face_count {
         let (line, text) = lines.next_line()?.ok_or_else(|| {
-            parse_error(path, lines.last_line(), format!("the file ends after {face} of {face_count} faces"))
+            parse_error(
+                path,
+                lines.last_line(),
+                format!("the file ends after {face} of {face_count} faces"),
+            )
         })?;
         let mut tokens = text.split_ascii_whitespace();
         let n_token = tokens.next().unwrap_or_default();
         let n = n_token.parse::<usize>().map_err(|_| {
-            parse_error(path, line, format!("face {face}: '{n_token}' is not a vertex count"))
+            parse_error(
+                path,
+                line,
+                format!("face {face}: '{n_token}' is not a vertex count"),
+            )
         })?;
         if n < 3 {
-            return Err(parse_error(path, line, format!("face {face} has {n} vertices, need at least 3")));
+            return Err(parse_error(
+                path,
+                line,
+                format!("face {face} has {n} vertices, need at least 3"),
+            ));
         }
         let mut listed = 0usize;
         let mut next_index = || -> Result<u32, MeshError> {
             let token = tokens.next().ok_or_else(|| {
-                parse_error(path, line, format!("face {face} declares {n} vertices but lists only {listed}"))
+                parse_error(
+                    path,
+                    line,
+                    format!("face {face} declares {n} vertices but lists only {listed}"),
+                )
             })?;
             listed += 1;
             let index = token.parse::<i64>().map_err(|_| {
-                parse_error(path, line, format!("face {face}: vertex index '{token}' is not an integer"))
+                parse_error(
+                    path,
+                    line,
+                    format!("face {face}: vertex index '{token}' is not an integer"),
+                )
             })?;
             if index < 0 {
-                return Err(parse_error(path, line, format!("face {face} has a negative vertex index ({index})")));
+                return Err(parse_error(
+                    path,
+                    line,
+                    format!("face {face} has a negative vertex index ({index})"),
+                ));
             }
             if index as u64 >= vertex_count as u64 || index > u32::MAX as i64 {
                 return Err(parse_error(
                     path,
                     line,
-                    format!("face {face} refers to vertex {index}, but the file has {vertex_count} vertices"),
+                    format!(
+                        "face {face} refers to vertex {index}, but the file has {vertex_count} vertices"
+                    ),
                 ));
             }
             Ok(index as u32)
@@ -222,7 +288,12 @@ mod tests {
     #[test]
     fn io_off_plain_fused_and_separate_headers() {
         let body = "0 0 0\n1 0 0\n0 1 0\n1 1 0\n4 0 1 3 2\n";
-        for header in ["OFF\n4 1 0\n", "OFF 4 1 0\n", "OFF4 1 0\n", "# c\n\nOFF\n# counts\n4 1\n"] {
+        for header in [
+            "OFF\n4 1 0\n",
+            "OFF 4 1 0\n",
+            "OFF4 1 0\n",
+            "# c\n\nOFF\n# counts\n4 1\n",
+        ] {
             let m = parse(&format!("{header}{body}")).unwrap();
             assert_eq!(m.vertices.len(), 4);
             assert_eq!(m.triangles, vec![[0, 1, 3], [0, 3, 2]]);
@@ -237,7 +308,10 @@ mod tests {
 
         let e = parse("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 nan\n3 0 1 2\n").unwrap_err();
         assert_eq!(line_of(&e), 5);
-        assert!(e.to_string().contains("vertex 2") && e.to_string().contains("non-finite"), "{e}");
+        assert!(
+            e.to_string().contains("vertex 2") && e.to_string().contains("non-finite"),
+            "{e}"
+        );
 
         let e = parse("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 3\n").unwrap_err();
         assert_eq!(line_of(&e), 6);
@@ -250,7 +324,16 @@ mod tests {
         assert!(e.to_string().contains("after 1 of 2 faces"), "{e}");
 
         let e = parse("OFF\n3 0 0\n0 0 0\n1 0 0\n0 1 0\n").unwrap_err();
-        assert!(matches!(e, MeshError::Data { source: MeshDataError::NoFaces, .. }), "{e:?}");
+        assert!(
+            matches!(
+                e,
+                MeshError::Data {
+                    source: MeshDataError::NoFaces,
+                    ..
+                }
+            ),
+            "{e:?}"
+        );
 
         let e = parse("OFF\n-3 1 0\n").unwrap_err();
         assert!(e.to_string().contains("negative vertex count"), "{e}");

@@ -6,7 +6,10 @@ use std::path::Path;
 
 use glam::Vec3;
 use ply_rs_bw::parser::{ParseError, Parser, Reader};
-use ply_rs_bw::ply::{ElementDef, Encoding, Header, Property, PropertyAccess, PropertyAccessResult, PropertyType, ScalarType};
+use ply_rs_bw::ply::{
+    ElementDef, Encoding, Header, Property, PropertyAccess, PropertyAccessResult, PropertyType,
+    ScalarType,
+};
 
 use super::{PlyEncoding, data_error, format_error, io_error, parse_error, read_all, write_atomic};
 use crate::{GeometryError, Mesh, MeshError, PointCloud};
@@ -57,14 +60,22 @@ pub fn read_ply_cloud(path: impl AsRef<Path>) -> Result<PointCloud, MeshError> {
 /// # Errors
 /// [`MeshError::Cloud`] when the cloud is invalid (attribute lengths differ from the point
 /// count, non-finite points or normals); [`MeshError::Io`] when writing fails.
-pub fn write_ply(path: impl AsRef<Path>, cloud: &PointCloud, encoding: PlyEncoding) -> Result<(), MeshError> {
+pub fn write_ply(
+    path: impl AsRef<Path>,
+    cloud: &PointCloud,
+    encoding: PlyEncoding,
+) -> Result<(), MeshError> {
     let path = path.as_ref();
     check_cloud(cloud, path)?;
     write_atomic(path, |w| write_cloud_unchecked(w, cloud, encoding))
 }
 
 /// Writes `cloud` as PLY to any writer; see [`write_ply`].
-pub fn write_ply_to<W: Write>(mut writer: W, cloud: &PointCloud, encoding: PlyEncoding) -> Result<(), MeshError> {
+pub fn write_ply_to<W: Write>(
+    mut writer: W,
+    cloud: &PointCloud,
+    encoding: PlyEncoding,
+) -> Result<(), MeshError> {
     let path = Path::new("<writer>");
     check_cloud(cloud, path)?;
     write_cloud_unchecked(&mut writer, cloud, encoding).map_err(|e| io_error(path, e))
@@ -76,14 +87,22 @@ pub fn write_ply_to<W: Write>(mut writer: W, cloud: &PointCloud, encoding: PlyEn
 /// # Errors
 /// [`MeshError::Data`] when the mesh does not pass [`Mesh::validate`]; [`MeshError::Format`]
 /// when it has more vertices than a PLY `int` index can address; [`MeshError::Io`].
-pub fn write_mesh_ply(path: impl AsRef<Path>, mesh: &Mesh, encoding: PlyEncoding) -> Result<(), MeshError> {
+pub fn write_mesh_ply(
+    path: impl AsRef<Path>,
+    mesh: &Mesh,
+    encoding: PlyEncoding,
+) -> Result<(), MeshError> {
     let path = path.as_ref();
     check_mesh(mesh, path)?;
     write_atomic(path, |w| write_mesh_unchecked(w, mesh, encoding))
 }
 
 /// Writes `mesh` as PLY to any writer; see [`write_mesh_ply`].
-pub fn write_mesh_ply_to<W: Write>(mut writer: W, mesh: &Mesh, encoding: PlyEncoding) -> Result<(), MeshError> {
+pub fn write_mesh_ply_to<W: Write>(
+    mut writer: W,
+    mesh: &Mesh,
+    encoding: PlyEncoding,
+) -> Result<(), MeshError> {
     let path = Path::new("<writer>");
     check_mesh(mesh, path)?;
     write_mesh_unchecked(&mut writer, mesh, encoding).map_err(|e| io_error(path, e))
@@ -93,11 +112,17 @@ pub fn write_mesh_ply_to<W: Write>(mut writer: W, mesh: &Mesh, encoding: PlyEnco
 // Writing
 
 fn check_cloud(cloud: &PointCloud, path: &Path) -> Result<(), MeshError> {
-    let cloud_error = |source| MeshError::Cloud { path: path.to_path_buf(), source };
+    let cloud_error = |source| MeshError::Cloud {
+        path: path.to_path_buf(),
+        source,
+    };
     cloud.validate().map_err(cloud_error)?;
     if let Some(normals) = &cloud.normals {
         if let Some(index) = normals.iter().position(|n| !n.is_finite()) {
-            return Err(cloud_error(GeometryError::NonFinitePoint { what: "point-cloud normals", index }));
+            return Err(cloud_error(GeometryError::NonFinitePoint {
+                what: "point-cloud normals",
+                index,
+            }));
         }
     }
     Ok(())
@@ -124,16 +149,28 @@ fn write_header(
         PlyEncoding::BinaryLittleEndian => "binary_little_endian",
         PlyEncoding::BinaryBigEndian => "binary_big_endian",
     };
-    writeln!(w, "ply\nformat {format} 1.0\ncomment written by ic_geometry")?;
-    writeln!(w, "element vertex {vertex_count}\nproperty float x\nproperty float y\nproperty float z")?;
+    writeln!(
+        w,
+        "ply\nformat {format} 1.0\ncomment written by ic_geometry"
+    )?;
+    writeln!(
+        w,
+        "element vertex {vertex_count}\nproperty float x\nproperty float y\nproperty float z"
+    )?;
     if normals {
         writeln!(w, "property float nx\nproperty float ny\nproperty float nz")?;
     }
     if colors {
-        writeln!(w, "property uchar red\nproperty uchar green\nproperty uchar blue")?;
+        writeln!(
+            w,
+            "property uchar red\nproperty uchar green\nproperty uchar blue"
+        )?;
     }
     if let Some(faces) = face_count {
-        writeln!(w, "element face {faces}\nproperty list uchar int vertex_indices")?;
+        writeln!(
+            w,
+            "element face {faces}\nproperty list uchar int vertex_indices"
+        )?;
     }
     writeln!(w, "end_header")
 }
@@ -193,8 +230,19 @@ fn maybe_flush(w: &mut dyn Write, buf: &mut Vec<u8>) -> std::io::Result<()> {
     Ok(())
 }
 
-fn write_cloud_unchecked(w: &mut dyn Write, cloud: &PointCloud, encoding: PlyEncoding) -> std::io::Result<()> {
-    write_header(w, encoding, cloud.len(), cloud.normals.is_some(), cloud.colors.is_some(), None)?;
+fn write_cloud_unchecked(
+    w: &mut dyn Write,
+    cloud: &PointCloud,
+    encoding: PlyEncoding,
+) -> std::io::Result<()> {
+    write_header(
+        w,
+        encoding,
+        cloud.len(),
+        cloud.normals.is_some(),
+        cloud.colors.is_some(),
+        None,
+    )?;
     let mut buf = Vec::with_capacity(1 << 16);
     for (i, p) in cloud.points.iter().enumerate() {
         for c in p.to_array() {
@@ -217,8 +265,19 @@ fn write_cloud_unchecked(w: &mut dyn Write, cloud: &PointCloud, encoding: PlyEnc
     w.flush()
 }
 
-fn write_mesh_unchecked(w: &mut dyn Write, mesh: &Mesh, encoding: PlyEncoding) -> std::io::Result<()> {
-    write_header(w, encoding, mesh.vertices.len(), false, false, Some(mesh.triangles.len()))?;
+fn write_mesh_unchecked(
+    w: &mut dyn Write,
+    mesh: &Mesh,
+    encoding: PlyEncoding,
+) -> std::io::Result<()> {
+    write_header(
+        w,
+        encoding,
+        mesh.vertices.len(),
+        false,
+        false,
+        Some(mesh.triangles.len()),
+    )?;
     let mut buf = Vec::with_capacity(1 << 16);
     for v in &mesh.vertices {
         for c in v.to_array() {
@@ -367,14 +426,11 @@ impl Locator<'_> {
 
     /// Converts a ply-rs error while reading element `name` starting at `first_line`.
     fn payload(&self, e: ParseError, name: &str, first_line: usize) -> MeshError {
-        let full = e.to_string();
-        let message = match e.line() {
-            Some(l) => full.strip_prefix(&format!("Line {l}: ")).unwrap_or(&full).to_string(),
-            None => full,
-        };
-        let message = message.replace("\n\t", "; ");
+        let message = tidy(&e);
         match (self.ascii, e.line()) {
-            (true, Some(line)) => parse_error(self.path, line, format!("element '{name}': {message}")),
+            (true, Some(line)) => {
+                parse_error(self.path, line, format!("element '{name}': {message}"))
+            }
             (false, Some(line)) if line >= first_line => format_error(
                 self.path,
                 format!("{name} {}: {message}", line - first_line),
@@ -384,14 +440,36 @@ impl Locator<'_> {
     }
 }
 
-fn header_error(path: &Path, e: ParseError) -> MeshError {
+/// ply-rs messages, made one-line: no "Line N:" prefix (we report the line ourselves), no
+/// embedded line breaks, and peg's debug dump reduced to the column.
+fn tidy(e: &ParseError) -> String {
     let full = e.to_string();
+    let full = match e.line() {
+        Some(l) => full.strip_prefix(&format!("Line {l}: ")).unwrap_or(&full),
+        None => &full,
+    };
+    let parts: Vec<String> = full
+        .split("\n\t")
+        .map(|part| {
+            if let Some(debug) = part.strip_prefix("Error: ParseError {") {
+                let column = debug
+                    .split("column: ")
+                    .nth(1)
+                    .and_then(|c| c.split(|ch: char| !ch.is_ascii_digit()).next())
+                    .unwrap_or("?");
+                format!("unexpected syntax at column {column}")
+            } else {
+                part.replace(['\r', '\n'], "").trim().to_string()
+            }
+        })
+        .collect();
+    parts.join("; ")
+}
+
+fn header_error(path: &Path, e: ParseError) -> MeshError {
     match e.line() {
-        Some(l) => {
-            let message = full.strip_prefix(&format!("Line {l}: ")).unwrap_or(&full).replace("\n\t", "; ");
-            parse_error(path, l, message)
-        }
-        None => format_error(path, full.replace("\n\t", "; ")),
+        Some(line) => parse_error(path, line, tidy(&e)),
+        None => format_error(path, tidy(&e)),
     }
 }
 
@@ -429,14 +507,22 @@ fn check_counts(header: &Header, remaining: usize, path: &Path) -> Result<(), Me
         if element.properties.is_empty() {
             return Err(format_error(
                 path,
-                format!("element '{name}' declares {} records but has no properties", element.count),
+                format!(
+                    "element '{name}' declares {} records but has no properties",
+                    element.count
+                ),
             ));
         }
         needed = element
             .count
             .checked_mul(per_record)
             .and_then(|n| n.checked_add(needed))
-            .ok_or_else(|| format_error(path, format!("element '{name}': count {} is absurd", element.count)))?;
+            .ok_or_else(|| {
+                format_error(
+                    path,
+                    format!("element '{name}': count {} is absurd", element.count),
+                )
+            })?;
         if needed > remaining.saturating_add(1) {
             return Err(format_error(
                 path,
@@ -451,15 +537,29 @@ fn check_counts(header: &Header, remaining: usize, path: &Path) -> Result<(), Me
 }
 
 fn scalar_property(element: &ElementDef, name: &str) -> Option<bool> {
-    element.properties.get(name).map(|p| matches!(p.data_type, PropertyType::Scalar(_)))
+    element
+        .properties
+        .get(name)
+        .map(|p| matches!(p.data_type, PropertyType::Scalar(_)))
 }
 
-pub(crate) fn parse_ply(bytes: &[u8], path: &Path, want_faces: bool) -> Result<PlyContents, MeshError> {
+pub(crate) fn parse_ply(
+    bytes: &[u8],
+    path: &Path,
+    want_faces: bool,
+) -> Result<PlyContents, MeshError> {
     let mut reader = Reader::new(Cursor::new(bytes));
-    let header = Parser::<Skipped>::new().read_header(&mut reader).map_err(|e| header_error(path, e))?;
-    let remaining = bytes.len().saturating_sub(reader.get_ref().position() as usize);
+    let header = Parser::<Skipped>::new()
+        .read_header(&mut reader)
+        .map_err(|e| header_error(path, e))?;
+    let remaining = bytes
+        .len()
+        .saturating_sub(reader.get_ref().position() as usize);
     check_counts(&header, remaining, path)?;
-    let locate = Locator { path, ascii: header.encoding == Encoding::Ascii };
+    let locate = Locator {
+        path,
+        ascii: header.encoding == Encoding::Ascii,
+    };
 
     let vertex_def = header
         .elements
@@ -468,24 +568,48 @@ pub(crate) fn parse_ply(bytes: &[u8], path: &Path, want_faces: bool) -> Result<P
     for axis in ["x", "y", "z"] {
         match scalar_property(vertex_def, axis) {
             Some(true) => {}
-            Some(false) => return Err(format_error(path, format!("vertex property '{axis}' is a list"))),
-            None => return Err(format_error(path, format!("the vertex element has no '{axis}' property"))),
+            Some(false) => {
+                return Err(format_error(
+                    path,
+                    format!("vertex property '{axis}' is a list"),
+                ));
+            }
+            None => {
+                return Err(format_error(
+                    path,
+                    format!("the vertex element has no '{axis}' property"),
+                ));
+            }
         }
     }
-    let all_scalar = |names: [&str; 3]| names.iter().all(|n| scalar_property(vertex_def, n) == Some(true));
+    let all_scalar = |names: [&str; 3]| {
+        names
+            .iter()
+            .all(|n| scalar_property(vertex_def, n) == Some(true))
+    };
     let has_normals = all_scalar(["nx", "ny", "nz"]);
     let has_colors = all_scalar(["red", "green", "blue"]);
     let face_def = header.elements.get("face");
     if want_faces {
         if let Some(face_def) = face_def {
-            let indices = face_def.properties.get("vertex_indices").or_else(|| face_def.properties.get("vertex_index"));
+            let indices = face_def
+                .properties
+                .get("vertex_indices")
+                .or_else(|| face_def.properties.get("vertex_index"));
             match indices.map(|p| &p.data_type) {
-                Some(PropertyType::List(_, t)) if !matches!(t, ScalarType::Float | ScalarType::Double) => {}
+                Some(PropertyType::List(_, t))
+                    if !matches!(t, ScalarType::Float | ScalarType::Double) => {}
                 Some(_) => {
-                    return Err(format_error(path, "the face indices must be a list of integers"));
+                    return Err(format_error(
+                        path,
+                        "the face indices must be a list of integers",
+                    ));
                 }
                 None => {
-                    return Err(format_error(path, "the face element has no 'vertex_indices' list"));
+                    return Err(format_error(
+                        path,
+                        "the face element has no 'vertex_indices' list",
+                    ));
                 }
             }
         }
@@ -519,8 +643,18 @@ pub(crate) fn parse_ply(bytes: &[u8], path: &Path, want_faces: bool) -> Result<P
     let mut points = Vec::with_capacity(records.len());
     for (i, r) in records.iter().enumerate() {
         let p = Vec3::from_array(r.position.map(|c| c as f32));
-        if let Some(bad) = r.position.iter().zip(p.to_array()).find(|(_, f)| !f.is_finite()).map(|(d, _)| *d) {
-            return Err(locate.at(vertex_line, i, format!("vertex {i} has a non-finite coordinate ({bad})")));
+        if let Some(bad) = r
+            .position
+            .iter()
+            .zip(p.to_array())
+            .find(|(_, f)| !f.is_finite())
+            .map(|(d, _)| *d)
+        {
+            return Err(locate.at(
+                vertex_line,
+                i,
+                format!("vertex {i} has a non-finite coordinate ({bad})"),
+            ));
         }
         points.push(p);
     }
@@ -534,17 +668,27 @@ pub(crate) fn parse_ply(bytes: &[u8], path: &Path, want_faces: bool) -> Result<P
         triangles.reserve(records.len());
         for (i, face) in records.iter().enumerate() {
             if let Some(v) = face.negative {
-                return Err(locate.at(face_line, i, format!("face {i} has a negative vertex index ({v})")));
+                return Err(locate.at(
+                    face_line,
+                    i,
+                    format!("face {i} has a negative vertex index ({v})"),
+                ));
             }
             let n = face.indices.len();
             if n < 3 {
-                return Err(locate.at(face_line, i, format!("face {i} has {n} vertices, need at least 3")));
+                return Err(locate.at(
+                    face_line,
+                    i,
+                    format!("face {i} has {n} vertices, need at least 3"),
+                ));
             }
             if let Some(&bad) = face.indices.iter().find(|&&v| v as usize >= vertex_count) {
                 return Err(locate.at(
                     face_line,
                     i,
-                    format!("face {i} refers to vertex {bad}, but the file has {vertex_count} vertices"),
+                    format!(
+                        "face {i} refers to vertex {bad}, but the file has {vertex_count} vertices"
+                    ),
                 ));
             }
             let first = face.indices[0];
@@ -554,7 +698,14 @@ pub(crate) fn parse_ply(bytes: &[u8], path: &Path, want_faces: bool) -> Result<P
         }
     }
 
-    Ok(PlyContents { cloud: PointCloud { points, normals, colors }, triangles })
+    Ok(PlyContents {
+        cloud: PointCloud {
+            points,
+            normals,
+            colors,
+        },
+        triangles,
+    })
 }
 
 #[cfg(test)]
@@ -579,7 +730,11 @@ element face 1\nproperty list uchar int vertex_indices\nelement edge 1\nproperty
     fn io_ply_errors_name_line_or_element() {
         let head = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n\
 element face 1\nproperty list uchar int vertex_indices\nend_header\n";
-        let e = parse(format!("{head}0 0 0\n1 0 0\n0 1 0\n3 0 1 5\n").as_bytes(), true).unwrap_err();
+        let e = parse(
+            format!("{head}0 0 0\n1 0 0\n0 1 0\n3 0 1 5\n").as_bytes(),
+            true,
+        )
+        .unwrap_err();
         match &e {
             MeshError::Parse { line, message, .. } => {
                 assert_eq!(*line, 13);
@@ -587,12 +742,23 @@ element face 1\nproperty list uchar int vertex_indices\nend_header\n";
             }
             other => panic!("{other:?}"),
         }
-        let e = parse(format!("{head}0 0 0\n1 a 0\n0 1 0\n3 0 1 2\n").as_bytes(), true).unwrap_err();
+        let e = parse(
+            format!("{head}0 0 0\n1 a 0\n0 1 0\n3 0 1 2\n").as_bytes(),
+            true,
+        )
+        .unwrap_err();
         assert!(matches!(e, MeshError::Parse { line: 11, .. }), "{e:?}");
-        let e = parse(format!("{head}0 0 0\n1 1e39 0\n0 1 0\n3 0 1 2\n").as_bytes(), true).unwrap_err();
+        let e = parse(
+            format!("{head}0 0 0\n1 1e39 0\n0 1 0\n3 0 1 2\n").as_bytes(),
+            true,
+        )
+        .unwrap_err();
         assert!(matches!(e, MeshError::Parse { line: 11, .. }), "{e:?}");
         assert!(e.to_string().contains("vertex 1"), "{e}");
-        let e = parse(format!("{head}0 0 0\n1 0 0\n0 1 0\n3 0 -1 2\n").as_bytes(), true);
+        let e = parse(
+            format!("{head}0 0 0\n1 0 0\n0 1 0\n3 0 -1 2\n").as_bytes(),
+            true,
+        );
         assert!(e.is_err());
         let e = parse(format!("{head}0 0 0\n1 0 0\n").as_bytes(), true).unwrap_err();
         assert!(e.to_string().contains("test.ply"), "{e}");

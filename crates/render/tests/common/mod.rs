@@ -2,7 +2,7 @@
 
 use std::sync::{Mutex, MutexGuard, OnceLock};
 
-use ic_geometry::{glam::DVec3, Intrinsics, Mesh};
+use ic_geometry::{Intrinsics, Mesh, glam::DVec3};
 use ic_render::{Camera, Rendering, WgpuRenderer};
 
 /// The shared wgpu renderer (device creation costs 35–260 ms on lavapipe), or `None` with the
@@ -19,7 +19,8 @@ pub fn wgpu() -> Option<MutexGuard<'static, WgpuRenderer>> {
             None
         }
     });
-    r.as_ref().map(|m| m.lock().unwrap_or_else(|e| e.into_inner()))
+    r.as_ref()
+        .map(|m| m.lock().unwrap_or_else(|e| e.into_inner()))
 }
 
 /// Distance along the pixel ray to the sphere (centre `c` in the camera frame, radius `r`),
@@ -81,12 +82,21 @@ pub fn compare(a: &Rendering, b: &Rendering) -> (usize, usize, f64, f64) {
     }
     rel.sort_by(f64::total_cmp);
     let max = rel.last().copied().unwrap_or(0.0);
-    let p999 = if rel.is_empty() { 0.0 } else { rel[(rel.len() as f64 * 0.999) as usize] };
+    let p999 = if rel.is_empty() {
+        0.0
+    } else {
+        rel[(rel.len() as f64 * 0.999) as usize]
+    };
     (px.len(), mismatched, max, p999)
 }
 
 /// A camera on the −z side of the origin looking at it, y down.
 pub fn camera_at(k: Intrinsics, distance: f64) -> Camera {
-    let pose = ic_geometry::look_at(DVec3::new(0.0, 0.0, -distance), DVec3::ZERO, DVec3::new(0.0, -1.0, 0.0)).unwrap();
+    let pose = ic_geometry::look_at(
+        DVec3::new(0.0, 0.0, -distance),
+        DVec3::ZERO,
+        DVec3::new(0.0, -1.0, 0.0),
+    )
+    .unwrap();
     Camera::new(k, pose)
 }
