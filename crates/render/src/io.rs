@@ -11,14 +11,13 @@
 
 use std::fs::File;
 use std::io::{BufReader, BufWriter};
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::path::Path;
 
 use ic_geometry::{DepthImage, Image, InstanceImage, Mask};
 
 use crate::ImageIoError;
 
-fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ImageIoError + '_ {
+fn io_err(path: &Path) -> impl Fn(std::io::Error) -> ImageIoError + '_ {
     move |source| ImageIoError::Io {
         path: path.to_path_buf(),
         source,
@@ -38,35 +37,7 @@ pub fn write_atomic(
     path: &Path,
     write: impl FnOnce(&mut BufWriter<File>) -> Result<(), ImageIoError>,
 ) -> Result<(), ImageIoError> {
-    static COUNTER: AtomicU64 = AtomicU64::new(0);
-    let name = path
-        .file_name()
-        .ok_or_else(|| ImageIoError::InvalidParameter {
-            path: path.to_path_buf(),
-            message: "the path has no file name".into(),
-        })?;
-    let tmp_name = format!(
-        ".{}.tmp-{}-{}",
-        name.to_string_lossy(),
-        std::process::id(),
-        COUNTER.fetch_add(1, Ordering::Relaxed)
-    );
-    let tmp: PathBuf = path.with_file_name(tmp_name);
-    let result = (|| {
-        let file = File::create(&tmp).map_err(io_err(path))?;
-        let mut w = BufWriter::new(file);
-        write(&mut w)?;
-        let file = w.into_inner().map_err(|e| ImageIoError::Io {
-            path: path.to_path_buf(),
-            source: e.into_error(),
-        })?;
-        file.sync_all().map_err(io_err(path))?;
-        std::fs::rename(&tmp, path).map_err(io_err(path))
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+    ic_geometry::io::write_atomic_with(path, write, io_err(path))
 }
 
 fn write_png_gray(

@@ -124,17 +124,24 @@ pub(crate) fn read_all(mut reader: impl Read, path: &Path) -> Result<Vec<u8>, Me
 
 /// Writes `path` atomically: `write` fills a temporary file next to `path`, which is flushed,
 /// synced and then renamed over `path`. On any failure the temporary file is removed and
-/// `path` is left untouched.
-pub(crate) fn write_atomic(
+/// `path` is left untouched, so a crash never leaves a half-written file behind.
+///
+/// Generic over the caller's error type: `io_error` turns the I/O failures of the temporary
+/// file into it (every crate that writes files uses this one function).
+pub fn write_atomic_with<E>(
     path: &Path,
-    write: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
-) -> Result<(), MeshError> {
+    write: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> Result<(), E>,
+    io_error: impl Fn(std::io::Error) -> E,
+) -> Result<(), E> {
     use std::sync::atomic::{AtomicU64, Ordering};
     static COUNTER: AtomicU64 = AtomicU64::new(0);
 
-    let file_name = path
-        .file_name()
-        .ok_or_else(|| format_error(path, "the output path has no file name"))?;
+    let file_name = path.file_name().ok_or_else(|| {
+        io_error(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "the output path has no file name",
+        ))
+    })?;
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
@@ -152,22 +159,29 @@ pub(crate) fn write_atomic(
         {
             Ok(f) => break (f, tmp),
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
-            Err(e) => return Err(io_error(path, e)),
+            Err(e) => return Err(io_error(e)),
         }
     };
     let result = (|| {
         let mut out = std::io::BufWriter::new(file);
         write(&mut out)?;
-        let file = out.into_inner().map_err(|e| e.into_error())?;
-        file.sync_all()?;
+        let file = out.into_inner().map_err(|e| io_error(e.into_error()))?;
+        file.sync_all().map_err(&io_error)?;
         drop(file);
-        std::fs::rename(&tmp, path)
+        std::fs::rename(&tmp, path).map_err(&io_error)
     })();
-    if let Err(e) = result {
+    if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
-        return Err(io_error(path, e));
     }
-    Ok(())
+    result
+}
+
+/// [`write_atomic_with`] for the mesh and cloud writers of this module.
+pub(crate) fn write_atomic(
+    path: &Path,
+    write: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
+) -> Result<(), MeshError> {
+    write_atomic_with(path, |w| write(w).map_err(|e| io_error(path, e)), |e| io_error(path, e))
 }
 
 #[cfg(test)]
