@@ -23,7 +23,7 @@ use std::sync::{Arc, Mutex};
 
 use glam::Vec3;
 use ic_geometry::{
-    DepthImage, Intrinsics, Mask, Normalisation, PointCloud, Pose, ViewSphere, Viewpoint,
+    DepthImage, Intrinsics, Mask, Normalisation, PointCloud, Pose, Viewpoint,
     random_subsample_indices, voxel_downsample,
 };
 use ic_render::{
@@ -76,15 +76,7 @@ impl Default for RoomSampleConfig {
                     bumps_per_face: 8,
                     seed: 0,
                 },
-                intrinsics: Intrinsics {
-                    fx: 525.0,
-                    fy: 525.0,
-                    cx: 319.5,
-                    cy: 239.5,
-                    width: 640,
-                    height: 480,
-                },
-                view: ViewSphere::paper(2.8),
+                // 640×480 at fx = fy = 525 and the paper's view sphere: SceneConfig's defaults.
                 wall_margin: 0.5,
                 ..SceneConfig::default()
             },

@@ -1,6 +1,55 @@
 //! `ic_pose` — the paper's one-shot pose estimator.
 //!
-//! This crate will own the DGCNN encoder, the transformer block, the score map
-//! S = fx·fyᵀ, the softmax and log-domain Sinkhorn (outlier bins) heads, the negative
-//! log-likelihood loss, pose recovery by (weighted) Procrustes, the `PoseEstimator` inference
-//! API and safetensors checkpoints. It knows nothing about rendering. See issue 5.
+//! Dang, Wang, Salzmann, *3D Registration for Self-Occluded Objects in Context*, CVPR 2021,
+//! Sec. 3 "Pose Estimation": a shared DGCNN encodes the model points X (M×3, model frame) and
+//! the observed points Y (N×3, camera frame) into θx, θy; one transformer block gives
+//! fx = θx + φ(θx, θy) and fy = θy + φ(θy, θx); the score map S = fx·fyᵀ/√d goes through a
+//! **softmax** head (for each observed point, log P over the M model points) or an **OT** head
+//! (log-domain Sinkhorn with outlier bins, [`sinkhorn::log_optimal_transport`]); the training
+//! loss is the normalised negative log-likelihood of the ground-truth assignment
+//! ([`nll_loss`]); the pose comes from weighted Procrustes over the arg-max correspondences,
+//! optionally refined by ICP ([`recover_pose`]).
+//!
+//! Inference:
+//!
+//! ```no_run
+//! use ic_pose::PoseEstimator;
+//! # fn main() -> Result<(), ic_pose::PoseError> {
+//! let estimator = PoseEstimator::load("models/pose-cpu-ot.safetensors")?;
+//! # let (model, observed) = (vec![], vec![]);
+//! let estimate = estimator.estimate(&model, &observed)?;
+//! println!("{:?} from {} correspondences", estimate.pose, estimate.inlier_count);
+//! # Ok(()) }
+//! ```
+//!
+//! Training ([`Trainer`]) builds a network with seeded weights, steps Adam on batches of
+//! `ic_data` samples and saves checkpoints (safetensors, configuration in the metadata,
+//! written atomically) from which a run resumes to the same numbers.
+//!
+//! Implementation notes (measured with candle 0.11 on CPU): LayerNorm, softmax and
+//! log-softmax are written from tensor ops (candle-nn's fused versions have no backward); the
+//! k-NN graph is computed in plain Rust ([`knn`]); DGCNN runs channel-first with the
+//! per-point products before the neighbour gather.
+
+pub mod adam;
+pub mod checkpoint;
+pub mod config;
+pub mod dgcnn;
+mod error;
+pub mod estimator;
+pub mod knn;
+pub mod layers;
+pub mod network;
+mod params;
+pub mod recover;
+pub mod sinkhorn;
+pub mod train;
+pub mod transformer;
+
+pub use config::{Head, NetConfig, OtConfig, PoseConfig, TrainConfig};
+pub use error::{PoseError, Result};
+pub use estimator::{PoseEstimate, PoseEstimator};
+pub use network::{HeadOutput, Match, PairBatch, PoseNet, correspondence_accuracy, nll_loss};
+pub use params::seeded_var_builder;
+pub use recover::{Recovered, RecoveryOptions, Refine, recover_pose};
+pub use train::{StepStats, Trainer};

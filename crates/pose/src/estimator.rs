@@ -1,0 +1,110 @@
+//! The inference API: load a checkpoint, estimate poses.
+
+use std::path::Path;
+
+use candle_core::{DType, Device};
+use candle_nn::VarBuilder;
+use glam::Vec3;
+use ic_geometry::Pose;
+use serde::{Deserialize, Serialize};
+
+use crate::config::PoseConfig;
+use crate::network::{HeadOutput, PairBatch, PoseNet, check_points};
+use crate::recover::{RecoveryOptions, recover_pose};
+use crate::{PoseError, Result, checkpoint};
+
+/// The pose of the model in the camera frame and how well it is supported.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PoseEstimate {
+    /// Maps model coordinates into camera coordinates.
+    pub pose: Pose,
+    /// Correspondences kept for Procrustes.
+    pub inlier_count: usize,
+    /// Mean probability of the kept correspondences, in [0, 1].
+    pub assignment_confidence: f32,
+}
+
+/// A trained network ready for inference (no autograd graph is recorded: the weights are
+/// plain tensors memory-mapped from the checkpoint).
+pub struct PoseEstimator {
+    net: PoseNet,
+    config: PoseConfig,
+    device: Device,
+    /// How correspondences become a pose (defaults: see [`RecoveryOptions`]).
+    pub recovery: RecoveryOptions,
+}
+
+impl PoseEstimator {
+    /// Loads a checkpoint written by training (weights-only or full) on the CPU.
+    pub fn load(path: impl AsRef<Path>) -> Result<Self> {
+        Self::load_on(path, &Device::Cpu)
+    }
+
+    /// Loads a checkpoint on `device`.
+    pub fn load_on(path: impl AsRef<Path>, device: &Device) -> Result<Self> {
+        let path = path.as_ref();
+        let config = checkpoint::read_config(path)?;
+        // SAFETY: the file is memory-mapped read-only; it must not be truncated while in use
+        // (checkpoints are replaced by rename, never rewritten in place).
+        let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[path], DType::F32, device) }
+            .map_err(|e| PoseError::Checkpoint {
+                path: path.to_path_buf(),
+                message: e.to_string(),
+            })?;
+        let net = PoseNet::new(vb, &config.net).map_err(|e| PoseError::Checkpoint {
+            path: path.to_path_buf(),
+            message: format!("does not match its configuration: {e}"),
+        })?;
+        Ok(PoseEstimator {
+            net,
+            config,
+            device: device.clone(),
+            recovery: RecoveryOptions::default(),
+        })
+    }
+
+    /// Wraps an existing network (e.g. the one being trained, for validation).
+    pub fn from_net(net: PoseNet, config: PoseConfig, device: Device) -> Self {
+        PoseEstimator {
+            net,
+            config,
+            device,
+            recovery: RecoveryOptions::default(),
+        }
+    }
+
+    pub fn config(&self) -> &PoseConfig {
+        &self.config
+    }
+
+    pub fn net(&self) -> &PoseNet {
+        &self.net
+    }
+
+    /// Runs the network (inference mode) on one pair.
+    pub fn infer(&self, model_points: &[Vec3], observed_points: &[Vec3]) -> Result<HeadOutput> {
+        let k = self.config.net.k.max(3);
+        check_points("model points", model_points, k)?;
+        check_points("observed points", observed_points, k)?;
+        let batch = PairBatch::new(&[(model_points, observed_points)], self.config.net.k, &self.device)?;
+        let out = self.net.forward_t(&batch, false)?;
+        Ok(HeadOutput {
+            log_p: out.log_p.detach(),
+            ..out
+        })
+    }
+
+    /// The pose mapping `model_points` (model frame) onto `observed_points` (camera frame).
+    ///
+    /// Errors: fewer points than the network's k (or 3), non-finite coordinates.
+    pub fn estimate(&self, model_points: &[Vec3], observed_points: &[Vec3]) -> Result<PoseEstimate> {
+        let out = self.infer(model_points, observed_points)?;
+        let matches = out.matches()?.remove(0);
+        let r = recover_pose(model_points, observed_points, &matches, &self.recovery)?;
+        Ok(PoseEstimate {
+            pose: r.pose,
+            inlier_count: r.inlier_count,
+            assignment_confidence: r.assignment_confidence,
+        })
+    }
+}

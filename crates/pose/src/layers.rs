@@ -1,0 +1,179 @@
+//! Small building blocks written from plain tensor ops, so that every parameter has a backward
+//! pass (candle-nn 0.11's fused `layer_norm` and `softmax_last_dim` silently have none).
+
+use candle_core::{D, Module, Result, Tensor, Var};
+use candle_nn::{Init, VarBuilder};
+
+/// A dense layer `y = x·Wᵀ + b` over the last dimension of a tensor of any rank. The leading
+/// dimensions are flattened into one matrix product (faster than candle's broadcast matmul).
+#[derive(Clone, Debug)]
+pub struct Dense {
+    weight: Tensor,
+    bias: Option<Tensor>,
+}
+
+impl Dense {
+    pub fn new(vb: VarBuilder, in_dims: usize, out_dims: usize, bias: bool) -> Result<Self> {
+        Self::build(vb, in_dims, out_dims, in_dims, bias)
+    }
+
+    /// No bias; weights initialised as if the layer had `fan_in` inputs.
+    pub fn with_fan_in(
+        vb: VarBuilder,
+        in_dims: usize,
+        out_dims: usize,
+        fan_in: usize,
+    ) -> Result<Self> {
+        Self::build(vb, in_dims, out_dims, fan_in, false)
+    }
+
+    fn build(
+        vb: VarBuilder,
+        in_dims: usize,
+        out_dims: usize,
+        fan_in: usize,
+        bias: bool,
+    ) -> Result<Self> {
+        let bound = 1.0 / (fan_in as f64).sqrt();
+        let init = Init::Uniform {
+            lo: -bound,
+            up: bound,
+        };
+        let weight = vb.get_with_hints((out_dims, in_dims), "weight", init)?;
+        let bias = if bias {
+            Some(vb.get_with_hints(out_dims, "bias", init)?)
+        } else {
+            None
+        };
+        Ok(Dense { weight, bias })
+    }
+
+    pub fn weight(&self) -> &Tensor {
+        &self.weight
+    }
+}
+
+impl Module for Dense {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let dims = x.dims().to_vec();
+        let (in_dims, lead) = match dims.split_last() {
+            Some((&c, lead)) => (c, lead.to_vec()),
+            None => candle_core::bail!("Dense on a scalar"),
+        };
+        let rows: usize = lead.iter().product();
+        let y = x.reshape((rows, in_dims))?.matmul(&self.weight.t()?)?;
+        let y = match &self.bias {
+            Some(b) => y.broadcast_add(b)?,
+            None => y,
+        };
+        let mut out = lead;
+        out.push(self.weight.dim(0)?);
+        y.reshape(out)
+    }
+}
+
+/// Layer normalisation over the last dimension, from tensor ops (differentiable).
+#[derive(Clone, Debug)]
+pub struct LayerNorm {
+    weight: Tensor,
+    bias: Tensor,
+    eps: f64,
+}
+
+impl LayerNorm {
+    pub fn new(vb: VarBuilder, dims: usize) -> Result<Self> {
+        Ok(LayerNorm {
+            weight: vb.get_with_hints(dims, "weight", Init::Const(1.0))?,
+            bias: vb.get_with_hints(dims, "bias", Init::Const(0.0))?,
+            eps: 1e-5,
+        })
+    }
+}
+
+impl Module for LayerNorm {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let mean = x.mean_keepdim(D::Minus1)?;
+        let xc = x.broadcast_sub(&mean)?;
+        let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
+        xc.broadcast_div(&(var + self.eps)?.sqrt()?)?
+            .broadcast_mul(&self.weight)?
+            .broadcast_add(&self.bias)
+    }
+}
+
+/// Batch normalisation for channel-first tensors `[B, C, L]`: statistics over B and L.
+///
+/// Reduces over the last dimension first (fast in candle), then over the small batch
+/// dimension, instead of candle-nn's transpose-and-copy. The running statistics live in the
+/// `VarMap` as `running_mean` / `running_var` (no gradient) and are saved with the weights.
+#[derive(Clone, Debug)]
+pub struct BatchNorm1 {
+    weight: Tensor,
+    bias: Tensor,
+    running_mean: Var,
+    running_var: Var,
+    momentum: f64,
+    eps: f64,
+}
+
+impl BatchNorm1 {
+    pub fn new(vb: VarBuilder, channels: usize, momentum: f64) -> Result<Self> {
+        let running_mean = vb.get_with_hints(channels, "running_mean", Init::Const(0.0))?;
+        let running_var = vb.get_with_hints(channels, "running_var", Init::Const(1.0))?;
+        Ok(BatchNorm1 {
+            weight: vb.get_with_hints(channels, "weight", Init::Const(1.0))?,
+            bias: vb.get_with_hints(channels, "bias", Init::Const(0.0))?,
+            running_mean: Var::from_tensor(&running_mean)?,
+            running_var: Var::from_tensor(&running_var)?,
+            momentum,
+            eps: 1e-5,
+        })
+    }
+
+    /// `train`: normalise with the batch statistics and update the running ones; otherwise
+    /// use the running statistics.
+    pub fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
+        let (b, c, l) = x.dims3()?;
+        let shape = (1, c, 1);
+        let w = self.weight.reshape(shape)?;
+        let bias = self.bias.reshape(shape)?;
+        if train {
+            let n = (b * l) as f64;
+            let mean = (x.sum_keepdim(2)?.sum_keepdim(0)? / n)?;
+            let xc = x.broadcast_sub(&mean)?;
+            let var = (xc.sqr()?.sum_keepdim(2)?.sum_keepdim(0)? / n)?;
+            let m = self.momentum;
+            let unbias = if n > 1.0 { n / (n - 1.0) } else { 1.0 };
+            let rm = ((self.running_mean.as_detached_tensor() * (1.0 - m))?
+                + (mean.detach().flatten_all()? * m)?)?;
+            let rv = ((self.running_var.as_detached_tensor() * (1.0 - m))?
+                + (var.detach().flatten_all()? * (m * unbias))?)?;
+            self.running_mean.set(&rm)?;
+            self.running_var.set(&rv)?;
+            let scale = w.broadcast_div(&(var + self.eps)?.sqrt()?)?;
+            xc.broadcast_mul(&scale)?.broadcast_add(&bias)
+        } else {
+            let rm = self.running_mean.as_detached_tensor().reshape(shape)?;
+            let rv = self.running_var.as_detached_tensor().reshape(shape)?;
+            let scale = w.broadcast_div(&(rv + self.eps)?.sqrt()?)?;
+            let shift = bias.broadcast_sub(&rm.broadcast_mul(&scale)?)?;
+            x.broadcast_mul(&scale)?.broadcast_add(&shift)
+        }
+    }
+}
+
+/// log-softmax over the last dimension with the max detached (its gradient is exact and no
+/// gradient flows through the max).
+pub fn log_softmax_last(x: &Tensor) -> Result<Tensor> {
+    let m = x.max_keepdim(D::Minus1)?.detach();
+    let d = x.broadcast_sub(&m)?;
+    let lse = d.exp()?.sum_keepdim(D::Minus1)?.log()?;
+    d.broadcast_sub(&lse)
+}
+
+/// Softmax over the last dimension with the max detached.
+pub fn softmax_last(x: &Tensor) -> Result<Tensor> {
+    let m = x.max_keepdim(D::Minus1)?.detach();
+    let e = x.broadcast_sub(&m)?.exp()?;
+    e.broadcast_div(&e.sum_keepdim(D::Minus1)?)
+}

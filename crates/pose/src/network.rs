@@ -1,0 +1,348 @@
+//! The whole network: shared DGCNN → transformer → score map → head, plus batching of point
+//! pairs, the negative log-likelihood loss and arg-max correspondences.
+//!
+//! Paper: Dang, Wang, Salzmann, "3D Registration for Self-Occluded Objects in Context",
+//! CVPR 2021 (<https://arxiv.org/abs/2011.11260>), Sec. 3 "Pose Estimation".
+
+use candle_core::{DType, Device, Result as CResult, Tensor};
+use candle_nn::VarBuilder;
+use glam::Vec3;
+use ic_data::Assignment;
+
+use crate::config::{Head, NetConfig};
+use crate::dgcnn::Dgcnn;
+use crate::layers::log_softmax_last;
+use crate::transformer::Transformer;
+use crate::{PoseError, Result, knn, sinkhorn};
+
+/// A batch of (model, observed) point-set pairs ready for the network: centred,
+/// channel-first coordinates and the k-NN graphs. All pairs share M and N.
+#[derive(Clone, Debug)]
+pub struct PairBatch {
+    /// `[B, 3, M]`, each cloud centred on its centroid.
+    pub model: Tensor,
+    /// `[B, 3, N]`, each cloud centred on its centroid.
+    pub observed: Tensor,
+    /// `[B, M·k]` u32.
+    pub model_graph: Tensor,
+    /// `[B, N·k]` u32.
+    pub observed_graph: Tensor,
+}
+
+/// Checks that `points` are finite and at least `needed`.
+pub fn check_points(what: &'static str, points: &[Vec3], needed: usize) -> Result<()> {
+    if points.len() < needed {
+        return Err(PoseError::TooFewPoints {
+            what,
+            got: points.len(),
+            needed,
+        });
+    }
+    if let Some(index) = points.iter().position(|p| !p.is_finite()) {
+        return Err(PoseError::NonFinite { what, index });
+    }
+    Ok(())
+}
+
+fn channel_first(clouds: &[&[Vec3]], k: usize, device: &Device) -> Result<(Tensor, Tensor)> {
+    let b = clouds.len();
+    let p = clouds[0].len();
+    let mut coords = Vec::with_capacity(b * 3 * p);
+    let mut graph = Vec::with_capacity(b * p * k);
+    for cloud in clouds {
+        let c = cloud.iter().copied().sum::<Vec3>() / p as f32;
+        let centred: Vec<Vec3> = cloud.iter().map(|q| *q - c).collect();
+        for axis in 0..3 {
+            coords.extend(centred.iter().map(|q| q[axis]));
+        }
+        graph.extend(knn::knn_indices(&centred, k));
+    }
+    Ok((
+        Tensor::from_vec(coords, (b, 3, p), device)?,
+        Tensor::from_vec(graph, (b, p * k), device)?,
+    ))
+}
+
+impl PairBatch {
+    /// Builds the batch; errors on an empty batch, differing sizes, fewer than `k` points or
+    /// non-finite coordinates.
+    pub fn new(pairs: &[(&[Vec3], &[Vec3])], k: usize, device: &Device) -> Result<Self> {
+        let Some(first) = pairs.first() else {
+            return Err(PoseError::Batch("empty batch".into()));
+        };
+        let (m, n) = (first.0.len(), first.1.len());
+        for (i, (x, y)) in pairs.iter().enumerate() {
+            if x.len() != m || y.len() != n {
+                return Err(PoseError::Batch(format!(
+                    "pair {i} has {}×{} points, pair 0 has {m}×{n}",
+                    x.len(),
+                    y.len()
+                )));
+            }
+            check_points("model points", x, k.max(3))?;
+            check_points("observed points", y, k.max(3))?;
+        }
+        let xs: Vec<&[Vec3]> = pairs.iter().map(|p| p.0).collect();
+        let ys: Vec<&[Vec3]> = pairs.iter().map(|p| p.1).collect();
+        let (model, model_graph) = channel_first(&xs, k, device)?;
+        let (observed, observed_graph) = channel_first(&ys, k, device)?;
+        Ok(PairBatch {
+            model,
+            observed,
+            model_graph,
+            observed_graph,
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.model.dims()[0]
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// Log-probabilities of a head.
+#[derive(Clone, Debug)]
+pub struct HeadOutput {
+    pub head: Head,
+    /// Softmax: `[B, N, M]` (for each observed point, log P over the model points).
+    /// OT: `[B, M+1, N+1]` (log P̄ with the outlier bins in row M and column N).
+    pub log_p: Tensor,
+    pub model_points: usize,
+    pub observed_points: usize,
+}
+
+/// For one observed point: its most probable model point.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Match {
+    pub observed: u32,
+    /// Most probable real model point.
+    pub model: u32,
+    /// Its probability.
+    pub probability: f32,
+    /// Whether the outlier bin is more probable than every model point (OT head only).
+    pub outlier: bool,
+}
+
+impl HeadOutput {
+    /// Per pair, one [`Match`] per observed point.
+    pub fn matches(&self) -> Result<Vec<Vec<Match>>> {
+        let (m, n) = (self.model_points, self.observed_points);
+        let b = self.log_p.dims()[0];
+        let lp = self.log_p.flatten_all()?.to_vec1::<f32>()?;
+        let mut out = Vec::with_capacity(b);
+        for bi in 0..b {
+            let mut row = Vec::with_capacity(n);
+            match self.head {
+                Head::Softmax => {
+                    let base = bi * n * m;
+                    for j in 0..n {
+                        let r = &lp[base + j * m..base + (j + 1) * m];
+                        let (i, v) = argmax(r.iter().copied());
+                        row.push(Match {
+                            observed: j as u32,
+                            model: i as u32,
+                            probability: v.exp(),
+                            outlier: false,
+                        });
+                    }
+                }
+                Head::Ot => {
+                    let base = bi * (m + 1) * (n + 1);
+                    for j in 0..n {
+                        let col = (0..m).map(|i| lp[base + i * (n + 1) + j]);
+                        let (i, v) = argmax(col);
+                        let bin = lp[base + m * (n + 1) + j];
+                        row.push(Match {
+                            observed: j as u32,
+                            model: i as u32,
+                            probability: v.exp(),
+                            outlier: bin > v,
+                        });
+                    }
+                }
+            }
+            out.push(row);
+        }
+        Ok(out)
+    }
+}
+
+fn argmax(it: impl Iterator<Item = f32>) -> (usize, f32) {
+    let mut best = (0, f32::NEG_INFINITY);
+    for (i, v) in it.enumerate() {
+        if v > best.1 {
+            best = (i, v);
+        }
+    }
+    best
+}
+
+/// DGCNN (shared by both clouds) + transformer + score map + head.
+#[derive(Clone, Debug)]
+pub struct PoseNet {
+    encoder: Dgcnn,
+    transformer: Transformer,
+    cfg: NetConfig,
+}
+
+impl PoseNet {
+    pub fn new(vb: VarBuilder, cfg: &NetConfig) -> CResult<Self> {
+        Ok(PoseNet {
+            encoder: Dgcnn::new(vb.pp("dgcnn"), cfg)?,
+            transformer: Transformer::new(vb.pp("transformer"), cfg)?,
+            cfg: cfg.clone(),
+        })
+    }
+
+    pub fn config(&self) -> &NetConfig {
+        &self.cfg
+    }
+
+    /// `(fx [B, M, d], fy [B, N, d])`.
+    pub fn embed(&self, batch: &PairBatch, train: bool) -> CResult<(Tensor, Tensor)> {
+        let tx = self
+            .encoder
+            .forward_t(&batch.model, &batch.model_graph, train)?
+            .transpose(1, 2)?
+            .contiguous()?;
+        let ty = self
+            .encoder
+            .forward_t(&batch.observed, &batch.observed_graph, train)?
+            .transpose(1, 2)?
+            .contiguous()?;
+        self.transformer.forward(&tx, &ty)
+    }
+
+    fn score_scale(&self) -> f64 {
+        if self.cfg.scale_scores {
+            1.0 / (self.cfg.emb_dims as f64).sqrt()
+        } else {
+            1.0
+        }
+    }
+
+    /// The score map `S = fx·fyᵀ` (divided by √d when `scale_scores`), `[B, M, N]`.
+    pub fn scores(&self, batch: &PairBatch, train: bool) -> CResult<Tensor> {
+        let (fx, fy) = self.embed(batch, train)?;
+        fx.matmul(&fy.t()?)? * self.score_scale()
+    }
+
+    /// Runs the network and its head. `train` selects batch statistics (and updates the
+    /// running ones) in the batch-norm layers.
+    pub fn forward_t(&self, batch: &PairBatch, train: bool) -> CResult<HeadOutput> {
+        let (fx, fy) = self.embed(batch, train)?;
+        let (m, n) = (fx.dim(1)?, fy.dim(1)?);
+        let log_p = match self.cfg.head {
+            Head::Softmax => log_softmax_last(&(fy.matmul(&fx.t()?)? * self.score_scale())?)?,
+            Head::Ot => {
+                let s = (fx.matmul(&fy.t()?)? * self.score_scale())?;
+                let ot = self.cfg.ot;
+                sinkhorn::log_optimal_transport(&s, ot.alpha, ot.lambda, ot.iterations)?
+            }
+        };
+        Ok(HeadOutput {
+            head: self.cfg.head,
+            log_p,
+            model_points: m,
+            observed_points: n,
+        })
+    }
+}
+
+/// The paper's normalised negative log-likelihood, averaged over the pairs of the batch.
+///
+/// Softmax head: over the matched pairs only, `−Σ log P_ji M_ij / Σ M_ij` (a pair without a
+/// match contributes nothing). OT head: over M̄ including the bins — an unmatched observed
+/// point j counts `log P̄[M, j]`, an unmatched model point i counts `log P̄[i, N]`. A batch
+/// with nothing to count gives a zero loss (with zero, finite gradients).
+pub fn nll_loss(out: &HeadOutput, assignments: &[&Assignment]) -> Result<Tensor> {
+    let (m, n) = (out.model_points, out.observed_points);
+    let b = out.log_p.dims()[0];
+    if assignments.len() != b {
+        return Err(PoseError::Batch(format!(
+            "{} assignments for {b} pairs",
+            assignments.len()
+        )));
+    }
+    let mut idx: Vec<u32> = Vec::new();
+    let mut w: Vec<f32> = Vec::new();
+    let mut per_pair: Vec<(usize, usize)> = Vec::with_capacity(b); // (start, count)
+    for (bi, a) in assignments.iter().enumerate() {
+        if a.model_count != m || a.observed_count != n || a.observed_to_model.len() != n {
+            return Err(PoseError::Batch(format!(
+                "assignment {bi} is {}×{}, the network output {m}×{n}",
+                a.model_count, a.observed_count
+            )));
+        }
+        let start = idx.len();
+        match out.head {
+            Head::Softmax => {
+                let base = bi * n * m;
+                for (j, i) in a.observed_to_model.iter().enumerate() {
+                    if let Some(i) = i {
+                        idx.push((base + j * m + *i as usize) as u32);
+                    }
+                }
+            }
+            Head::Ot => {
+                let base = bi * (m + 1) * (n + 1);
+                let mut model_matched = vec![false; m];
+                for (j, i) in a.observed_to_model.iter().enumerate() {
+                    let row = match i {
+                        Some(i) => {
+                            model_matched[*i as usize] = true;
+                            *i as usize
+                        }
+                        None => m,
+                    };
+                    idx.push((base + row * (n + 1) + j) as u32);
+                }
+                for (i, matched) in model_matched.iter().enumerate() {
+                    if !matched {
+                        idx.push((base + i * (n + 1) + n) as u32);
+                    }
+                }
+            }
+        }
+        per_pair.push((start, idx.len() - start));
+    }
+    let counted = per_pair.iter().filter(|p| p.1 > 0).count();
+    let device = out.log_p.device();
+    if counted == 0 {
+        return Ok((out.log_p.sum_all()? * 0.0)?);
+    }
+    for (_, count) in &per_pair {
+        let weight = if *count > 0 {
+            1.0 / (*count as f32 * counted as f32)
+        } else {
+            0.0
+        };
+        w.extend(std::iter::repeat_n(weight, *count));
+    }
+    let k = idx.len();
+    let idx = Tensor::from_vec(idx, k, device)?;
+    let w = Tensor::from_vec(w, k, device)?.to_dtype(DType::F32)?;
+    let picked = out.log_p.flatten_all()?.index_select(&idx, 0)?;
+    Ok((picked.mul(&w)?.sum_all()? * -1.0)?)
+}
+
+/// Fraction of matched observed points whose arg-max model point is the true one (`None`
+/// when the batch has no matched point).
+pub fn correspondence_accuracy(matches: &[Vec<Match>], assignments: &[&Assignment]) -> Option<f64> {
+    let mut total = 0usize;
+    let mut right = 0usize;
+    for (ms, a) in matches.iter().zip(assignments) {
+        for (mt, truth) in ms.iter().zip(&a.observed_to_model) {
+            if let Some(t) = truth {
+                total += 1;
+                if !mt.outlier && mt.model == *t {
+                    right += 1;
+                }
+            }
+        }
+    }
+    (total > 0).then(|| right as f64 / total as f64)
+}

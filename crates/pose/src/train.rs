@@ -1,0 +1,207 @@
+//! One training step and the training state (weights, Adam moments, iteration), with exact
+//! save/resume. The sample stream is indexed by (seed, index), so the data side resumes by
+//! itself: iteration `i` uses samples `i·B .. (i+1)·B`.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use candle_core::{Device, Tensor};
+use candle_nn::VarMap;
+use glam::Vec3;
+use ic_data::{Assignment, ObjectSample};
+
+use crate::adam::Adam;
+use crate::checkpoint::{self, CONFIG_KEY, STATE_KEY, TrainState};
+use crate::config::PoseConfig;
+use crate::estimator::PoseEstimator;
+use crate::network::{PairBatch, PoseNet, correspondence_accuracy, nll_loss};
+use crate::params::seeded_var_builder;
+use crate::{PoseError, Result};
+
+/// What one step measured.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepStats {
+    pub loss: f32,
+    /// Arg-max correspondence accuracy over the matched observed points of the batch.
+    pub accuracy: Option<f64>,
+    /// Matched observed points in the batch.
+    pub matched: usize,
+}
+
+/// Network + optimiser + position in the run.
+pub struct Trainer {
+    config: PoseConfig,
+    varmap: VarMap,
+    net: PoseNet,
+    adam: Adam,
+    iteration: u64,
+    seed: u64,
+    device: Device,
+}
+
+impl Trainer {
+    /// A fresh run: weights drawn from `seed`.
+    pub fn new(config: PoseConfig, seed: u64) -> Result<Self> {
+        Self::new_on(config, seed, Device::Cpu)
+    }
+
+    pub fn new_on(config: PoseConfig, seed: u64, device: Device) -> Result<Self> {
+        config.validate()?;
+        let varmap = VarMap::new();
+        let vb = seeded_var_builder(&varmap, seed, &device);
+        let net = PoseNet::new(vb, &config.net)?;
+        let adam = Adam::new(&varmap, config.train.learning_rate)?;
+        Ok(Trainer {
+            config,
+            varmap,
+            net,
+            adam,
+            iteration: 0,
+            seed,
+            device,
+        })
+    }
+
+    /// Continues the run saved in `path` (configuration, weights, Adam moments, iteration).
+    pub fn resume(path: &Path) -> Result<Self> {
+        let config = checkpoint::read_config(path)?;
+        let state = checkpoint::read_state(path)?;
+        let mut t = Self::new(config, state.seed)?;
+        let tensors = candle_core::safetensors::load(path, &t.device).map_err(|e| {
+            PoseError::Checkpoint {
+                path: path.to_path_buf(),
+                message: e.to_string(),
+            }
+        })?;
+        t.load_weights(&tensors, path)?;
+        t.adam
+            .load_state(&tensors, state.adam_step)
+            .map_err(|e| PoseError::Checkpoint {
+                path: path.to_path_buf(),
+                message: e.to_string(),
+            })?;
+        t.iteration = state.iteration;
+        Ok(t)
+    }
+
+    fn load_weights(&mut self, tensors: &HashMap<String, Tensor>, path: &Path) -> Result<()> {
+        let data = self.varmap.data().lock().unwrap();
+        for (name, var) in data.iter() {
+            let t = tensors.get(name).ok_or_else(|| PoseError::Checkpoint {
+                path: path.to_path_buf(),
+                message: format!("missing tensor {name}"),
+            })?;
+            if t.shape() != var.shape() {
+                return Err(PoseError::Checkpoint {
+                    path: path.to_path_buf(),
+                    message: format!("{name}: shape {:?}, expected {:?}", t.shape(), var.shape()),
+                });
+            }
+            var.set(t)?;
+        }
+        Ok(())
+    }
+
+    pub fn config(&self) -> &PoseConfig {
+        &self.config
+    }
+
+    pub fn iteration(&self) -> u64 {
+        self.iteration
+    }
+
+    pub fn seed(&self) -> u64 {
+        self.seed
+    }
+
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    pub fn net(&self) -> &PoseNet {
+        &self.net
+    }
+
+    pub fn varmap(&self) -> &VarMap {
+        &self.varmap
+    }
+
+    /// An estimator sharing the current weights (inference mode), e.g. for validation.
+    pub fn estimator(&self) -> PoseEstimator {
+        PoseEstimator::from_net(self.net.clone(), self.config.clone(), self.device.clone())
+    }
+
+    /// One step on ic_data samples.
+    pub fn step(&mut self, samples: &[ObjectSample]) -> Result<StepStats> {
+        let pairs: Vec<(&[Vec3], &[Vec3])> = samples
+            .iter()
+            .map(|s| (&s.model_points[..], &s.observed_points[..]))
+            .collect();
+        let assignments: Vec<&Assignment> = samples.iter().map(|s| &s.assignment).collect();
+        self.step_pairs(&pairs, &assignments)
+    }
+
+    /// One step: forward (training mode), loss, backward, Adam.
+    pub fn step_pairs(
+        &mut self,
+        pairs: &[(&[Vec3], &[Vec3])],
+        assignments: &[&Assignment],
+    ) -> Result<StepStats> {
+        let batch = PairBatch::new(pairs, self.config.net.k, &self.device)?;
+        let out = self.net.forward_t(&batch, true)?;
+        let loss = nll_loss(&out, assignments)?;
+        let grads = loss.backward()?;
+        self.adam.step(&grads)?;
+        let matches = out.matches()?;
+        let accuracy = correspondence_accuracy(&matches, assignments);
+        self.iteration += 1;
+        Ok(StepStats {
+            loss: loss.to_scalar::<f32>()?,
+            accuracy,
+            matched: assignments.iter().map(|a| a.inlier_count()).sum(),
+        })
+    }
+
+    fn metadata(&self, with_state: bool) -> Result<HashMap<String, String>> {
+        let mut meta = HashMap::new();
+        let json = |e: serde_json::Error| PoseError::Config(e.to_string());
+        meta.insert(
+            CONFIG_KEY.to_string(),
+            serde_json::to_string(&self.config).map_err(json)?,
+        );
+        if with_state {
+            let state = TrainState {
+                iteration: self.iteration,
+                seed: self.seed,
+                adam_step: self.adam.step_count(),
+            };
+            meta.insert(
+                STATE_KEY.to_string(),
+                serde_json::to_string(&state).map_err(json)?,
+            );
+        }
+        Ok(meta)
+    }
+
+    fn weights(&self) -> Vec<(String, Tensor)> {
+        self.varmap
+            .data()
+            .lock()
+            .unwrap()
+            .iter()
+            .map(|(k, v)| (k.clone(), v.as_tensor().detach()))
+            .collect()
+    }
+
+    /// Saves everything needed to resume exactly (atomically).
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let mut tensors = self.weights();
+        tensors.extend(self.adam.state());
+        checkpoint::save(path, &tensors, self.metadata(true)?)
+    }
+
+    /// Saves the weights and configuration only (what inference needs; atomically).
+    pub fn save_weights(&self, path: &Path) -> Result<()> {
+        checkpoint::save(path, &self.weights(), self.metadata(false)?)
+    }
+}

@@ -1,0 +1,172 @@
+//! The attention block φ of DCP: one encoder layer and one decoder layer of a pre-norm
+//! transformer, giving `φ(a, b) = decoder(a, memory = encoder(b))`.
+//!
+//! Vaswani et al., "Attention Is All You Need" (<https://arxiv.org/abs/1706.03762>); DCP, Wang &
+//! Solomon, ICCV 2019 (<https://arxiv.org/abs/1905.03304>, Sec. 4.2: fx = θx + φ(θx, θy),
+//! fy = θy + φ(θy, θx)); the paper (Dang et al., CVPR 2021) uses one block, 4 heads, ff 1024.
+//! Point-major layout `[B, P, d]`; LayerNorm and softmax are written from tensor ops.
+
+use candle_core::{Module, Result, Tensor};
+use candle_nn::VarBuilder;
+
+use crate::config::NetConfig;
+use crate::layers::{Dense, LayerNorm, softmax_last};
+
+/// Multi-head scaled dot-product attention.
+#[derive(Clone, Debug)]
+pub struct MultiHeadAttention {
+    q: Dense,
+    k: Dense,
+    v: Dense,
+    o: Dense,
+    heads: usize,
+}
+
+impl MultiHeadAttention {
+    pub fn new(vb: VarBuilder, dims: usize, heads: usize) -> Result<Self> {
+        Ok(MultiHeadAttention {
+            q: Dense::new(vb.pp("q"), dims, dims, true)?,
+            k: Dense::new(vb.pp("k"), dims, dims, true)?,
+            v: Dense::new(vb.pp("v"), dims, dims, true)?,
+            o: Dense::new(vb.pp("o"), dims, dims, true)?,
+            heads,
+        })
+    }
+
+    fn split(&self, x: &Tensor) -> Result<Tensor> {
+        let (b, p, d) = x.dims3()?;
+        x.reshape((b, p, self.heads, d / self.heads))?
+            .transpose(1, 2)?
+            .contiguous()
+    }
+
+    /// `query`: `[B, Pq, d]`, `context`: `[B, Pk, d]` → `[B, Pq, d]`.
+    pub fn forward(&self, query: &Tensor, context: &Tensor) -> Result<Tensor> {
+        let (b, pq, d) = query.dims3()?;
+        let q = self.split(&self.q.forward(query)?)?;
+        let k = self.split(&self.k.forward(context)?)?;
+        let v = self.split(&self.v.forward(context)?)?;
+        let scale = 1.0 / ((d / self.heads) as f64).sqrt();
+        let att = softmax_last(&(q.matmul(&k.t()?)? * scale)?)?;
+        let out = att.matmul(&v)?.transpose(1, 2)?.reshape((b, pq, d))?;
+        self.o.forward(&out)
+    }
+}
+
+/// Position-wise feed-forward: Dense → ReLU → Dense.
+#[derive(Clone, Debug)]
+pub struct FeedForward {
+    up: Dense,
+    down: Dense,
+}
+
+impl FeedForward {
+    pub fn new(vb: VarBuilder, dims: usize, hidden: usize) -> Result<Self> {
+        Ok(FeedForward {
+            up: Dense::new(vb.pp("up"), dims, hidden, true)?,
+            down: Dense::new(vb.pp("down"), hidden, dims, true)?,
+        })
+    }
+}
+
+impl Module for FeedForward {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        self.down.forward(&self.up.forward(x)?.relu()?)
+    }
+}
+
+/// Encoder layer: `x + SelfAttn(LN(x))`, then `x + FF(LN(x))`, then a final LayerNorm.
+#[derive(Clone, Debug)]
+pub struct EncoderLayer {
+    ln1: LayerNorm,
+    attn: MultiHeadAttention,
+    ln2: LayerNorm,
+    ff: FeedForward,
+    norm: LayerNorm,
+}
+
+impl EncoderLayer {
+    pub fn new(vb: VarBuilder, cfg: &NetConfig) -> Result<Self> {
+        let d = cfg.emb_dims;
+        Ok(EncoderLayer {
+            ln1: LayerNorm::new(vb.pp("ln1"), d)?,
+            attn: MultiHeadAttention::new(vb.pp("attn"), d, cfg.heads)?,
+            ln2: LayerNorm::new(vb.pp("ln2"), d)?,
+            ff: FeedForward::new(vb.pp("ff"), d, cfg.ff_dims)?,
+            norm: LayerNorm::new(vb.pp("norm"), d)?,
+        })
+    }
+}
+
+impl Module for EncoderLayer {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let h = self.ln1.forward(x)?;
+        let x = (x + self.attn.forward(&h, &h)?)?;
+        let x = (&x + self.ff.forward(&self.ln2.forward(&x)?)?)?;
+        self.norm.forward(&x)
+    }
+}
+
+/// Decoder layer: self-attention, cross-attention to the encoder's memory, feed-forward
+/// (each pre-norm with a residual), then a final LayerNorm.
+#[derive(Clone, Debug)]
+pub struct DecoderLayer {
+    ln1: LayerNorm,
+    self_attn: MultiHeadAttention,
+    ln2: LayerNorm,
+    cross_attn: MultiHeadAttention,
+    ln3: LayerNorm,
+    ff: FeedForward,
+    norm: LayerNorm,
+}
+
+impl DecoderLayer {
+    pub fn new(vb: VarBuilder, cfg: &NetConfig) -> Result<Self> {
+        let d = cfg.emb_dims;
+        Ok(DecoderLayer {
+            ln1: LayerNorm::new(vb.pp("ln1"), d)?,
+            self_attn: MultiHeadAttention::new(vb.pp("self_attn"), d, cfg.heads)?,
+            ln2: LayerNorm::new(vb.pp("ln2"), d)?,
+            cross_attn: MultiHeadAttention::new(vb.pp("cross_attn"), d, cfg.heads)?,
+            ln3: LayerNorm::new(vb.pp("ln3"), d)?,
+            ff: FeedForward::new(vb.pp("ff"), d, cfg.ff_dims)?,
+            norm: LayerNorm::new(vb.pp("norm"), d)?,
+        })
+    }
+
+    pub fn forward(&self, x: &Tensor, memory: &Tensor) -> Result<Tensor> {
+        let h = self.ln1.forward(x)?;
+        let x = (x + self.self_attn.forward(&h, &h)?)?;
+        let x = (&x + self.cross_attn.forward(&self.ln2.forward(&x)?, memory)?)?;
+        let x = (&x + self.ff.forward(&self.ln3.forward(&x)?)?)?;
+        self.norm.forward(&x)
+    }
+}
+
+/// φ: one encoder layer and one decoder layer shared by both directions.
+#[derive(Clone, Debug)]
+pub struct Transformer {
+    encoder: EncoderLayer,
+    decoder: DecoderLayer,
+}
+
+impl Transformer {
+    pub fn new(vb: VarBuilder, cfg: &NetConfig) -> Result<Self> {
+        Ok(Transformer {
+            encoder: EncoderLayer::new(vb.pp("encoder"), cfg)?,
+            decoder: DecoderLayer::new(vb.pp("decoder"), cfg)?,
+        })
+    }
+
+    /// `φ(a, b)`: `a` attends to the encoded `b`. Both `[B, P, d]`.
+    pub fn phi(&self, a: &Tensor, b: &Tensor) -> Result<Tensor> {
+        self.decoder.forward(a, &self.encoder.forward(b)?)
+    }
+
+    /// `(θx + φ(θx, θy), θy + φ(θy, θx))`.
+    pub fn forward(&self, tx: &Tensor, ty: &Tensor) -> Result<(Tensor, Tensor)> {
+        let fx = (tx + self.phi(tx, ty)?)?;
+        let fy = (ty + self.phi(ty, tx)?)?;
+        Ok((fx, fy))
+    }
+}
