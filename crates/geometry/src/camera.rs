@@ -283,6 +283,43 @@ mod tests {
         assert!(top.camera_pose(DVec3::ZERO).is_ok());
     }
 
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(256))]
+
+        #[test]
+        fn project_then_back_project_is_the_identity(
+            x in -3.0f64..3.0, y in -3.0f64..3.0, z in 0.05f64..20.0,
+            fx in 50.0f64..2000.0, fy in 50.0f64..2000.0, cx in -100.0f64..800.0, cy in -100.0f64..600.0,
+        ) {
+            let k = Intrinsics::new(fx, fy, cx, cy, 640, 480).unwrap();
+            let p = DVec3::new(x, y, z);
+            let (u, v) = k.project(p).unwrap();
+            let back = k.back_project(u, v, z);
+            proptest::prop_assert!(back.abs_diff_eq(p, 1e-9 * (1.0 + p.length())), "{p} -> ({u}, {v}) -> {back}");
+            // And the other way round: pixel -> point -> pixel.
+            let (u2, v2) = k.project(k.back_project(u, v, z)).unwrap();
+            proptest::prop_assert!((u2 - u).abs() < 1e-6 && (v2 - v).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn depth_map_back_projection_reprojects_onto_its_pixels() {
+        let k = Intrinsics::from_fov_y(32, 24, 60.0).unwrap();
+        let depth = DepthImage::from_vec(
+            32,
+            24,
+            (0..32 * 24).map(|i| 1.0 + (i % 7) as f32 * 0.25).collect(),
+        )
+        .unwrap();
+        let points = k.back_project_depth(&depth, None).unwrap();
+        assert_eq!(points.len(), 32 * 24);
+        for (i, p) in points.iter().enumerate() {
+            let (u, v) = k.project_to_pixel(p.as_dvec3()).unwrap();
+            assert_eq!((u as usize, v as usize), (i % 32, i / 32));
+            assert_eq!(p.z, depth.data[i]);
+        }
+    }
+
     #[test]
     fn invalid_intrinsics_are_rejected() {
         assert!(Intrinsics::new(0.0, 500.0, 320.0, 240.0, 640, 480).is_err());

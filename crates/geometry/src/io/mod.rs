@@ -181,7 +181,11 @@ pub(crate) fn write_atomic(
     path: &Path,
     write: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
 ) -> Result<(), MeshError> {
-    write_atomic_with(path, |w| write(w).map_err(|e| io_error(path, e)), |e| io_error(path, e))
+    write_atomic_with(
+        path,
+        |w| write(w).map_err(|e| io_error(path, e)),
+        |e| io_error(path, e),
+    )
 }
 
 #[cfg(test)]
