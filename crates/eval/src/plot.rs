@@ -1,0 +1,181 @@
+//! Accuracy-vs-threshold curves (rotation and translation), one line per method, like the
+//! paper's mAP figures — as PNG and SVG. The font is embedded (DejaVu Sans Mono, see
+//! `assets/DejaVu-LICENSE.txt`), so no system fonts are needed.
+
+use std::path::Path;
+use std::sync::Once;
+
+use plotters::prelude::*;
+
+use crate::{EvalError, MethodResult, accuracy};
+
+const FONT: &[u8] = include_bytes!("../assets/DejaVuSansMono.ttf");
+const FONT_NAME: &str = "ic-eval-mono";
+
+fn register_font() -> Result<(), EvalError> {
+    static ONCE: Once = Once::new();
+    let mut result = Ok(());
+    ONCE.call_once(|| {
+        result = plotters::style::register_font(FONT_NAME, FontStyle::Normal, FONT)
+            .map_err(|_| EvalError::Plot("the embedded font could not be loaded".into()));
+    });
+    result
+}
+
+/// Which error a curve shows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Curve {
+    /// Rotation error, thresholds 0–max degrees.
+    Rotation,
+    /// Squared translation error, thresholds 0–max.
+    TranslationSq,
+}
+
+/// Draws accuracy (fraction of samples with error ≤ threshold) against the threshold for
+/// every method, to `path` (the extension picks PNG or SVG).
+pub fn plot_accuracy_curves(
+    path: &Path,
+    results: &[MethodResult],
+    curve: Curve,
+    max: f64,
+) -> Result<(), EvalError> {
+    register_font()?;
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase);
+    let size = (720, 480);
+    match ext.as_deref() {
+        Some("png") => draw(
+            BitMapBackend::new(path, size).into_drawing_area(),
+            results,
+            curve,
+            max,
+        ),
+        Some("svg") => draw(
+            SVGBackend::new(path, size).into_drawing_area(),
+            results,
+            curve,
+            max,
+        ),
+        _ => Err(EvalError::Plot(format!(
+            "{}: the plot file must end in .png or .svg",
+            path.display()
+        ))),
+    }
+    .map_err(|e| match e {
+        EvalError::Plot(m) => EvalError::Plot(format!("{}: {m}", path.display())),
+        other => other,
+    })
+}
+
+fn draw<DB: DrawingBackend>(
+    root: DrawingArea<DB, plotters::coord::Shift>,
+    results: &[MethodResult],
+    curve: Curve,
+    max: f64,
+) -> Result<(), EvalError>
+where
+    DB::ErrorType: 'static,
+{
+    let err = |e: DrawingAreaErrorKind<DB::ErrorType>| EvalError::Plot(e.to_string());
+    root.fill(&WHITE).map_err(err)?;
+    let (title, x_label) = match curve {
+        Curve::Rotation => ("Rotation accuracy", "rotation error threshold (degrees)"),
+        Curve::TranslationSq => (
+            "Translation accuracy",
+            "squared translation error threshold",
+        ),
+    };
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, (FONT_NAME, 22))
+        .margin(16)
+        .x_label_area_size(44)
+        .y_label_area_size(56)
+        .build_cartesian_2d(0.0..max, 0.0..1.0)
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .x_desc(x_label)
+        .y_desc("accuracy")
+        .label_style((FONT_NAME, 13))
+        .axis_desc_style((FONT_NAME, 15))
+        .draw()
+        .map_err(err)?;
+    let steps = 200;
+    for (i, r) in results.iter().enumerate() {
+        let errors = match curve {
+            Curve::Rotation => &r.rotation_errors_deg,
+            Curve::TranslationSq => &r.translation_sq_errors,
+        };
+        let colour = Palette99::pick(i).to_rgba();
+        let points: Vec<(f64, f64)> = (0..=steps)
+            .map(|k| {
+                let t = max * k as f64 / steps as f64;
+                (t, accuracy(errors, t))
+            })
+            .collect();
+        chart
+            .draw_series(LineSeries::new(points, colour.stroke_width(2)))
+            .map_err(err)?
+            .label(r.method.clone())
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2))
+            });
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::LowerRight)
+        .label_font((FONT_NAME, 13))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(err)?;
+    root.present().map_err(err)?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::Summary;
+
+    fn result(name: &str, scale: f64) -> MethodResult {
+        let rot: Vec<f64> = (0..100).map(|i| i as f64 * scale).collect();
+        let tsq: Vec<f64> = (0..100).map(|i| i as f64 * scale * 1e-4).collect();
+        MethodResult {
+            method: name.into(),
+            summary: Summary::new(&[], None),
+            rotation_errors_deg: rot,
+            translation_sq_errors: tsq,
+            seconds_median: None,
+        }
+    }
+
+    #[test]
+    fn writes_png_and_svg_with_one_line_per_method() {
+        let dir = tempfile::tempdir().unwrap();
+        let results = [result("ours-ot", 0.2), result("icp", 0.5)];
+        let png = dir.path().join("rot.png");
+        plot_accuracy_curves(&png, &results, Curve::Rotation, 30.0).unwrap();
+        let bytes = std::fs::read(&png).unwrap();
+        assert_eq!(&bytes[1..4], b"PNG");
+        let svg = dir.path().join("trans.svg");
+        plot_accuracy_curves(&svg, &results, Curve::TranslationSq, 1e-2).unwrap();
+        let text = std::fs::read_to_string(&svg).unwrap();
+        assert!(
+            text.contains("ours-ot")
+                && text.contains("icp")
+                && text.contains("Translation accuracy")
+        );
+        // The two curves and their two legend marks are the only 2-px strokes.
+        assert_eq!(text.matches(r#"stroke-width="2""#).count(), 4, "{text}");
+        if let Ok(keep) = std::env::var("IC_EVAL_KEEP_PLOT") {
+            plot_accuracy_curves(Path::new(&keep), &results, Curve::Rotation, 30.0).unwrap();
+        }
+        assert!(
+            plot_accuracy_curves(&dir.path().join("x.gif"), &results, Curve::Rotation, 30.0)
+                .is_err()
+        );
+    }
+}
