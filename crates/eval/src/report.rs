@@ -96,7 +96,7 @@ mod tests {
             translation_sq_errors: vec![4e-4, f64::INFINITY],
             seconds_median: Some(0.05),
         };
-        let t = markdown_table(&[r.clone()]);
+        let t = markdown_table(std::slice::from_ref(&r));
         assert!(t.contains("| ours-ot | 2 | 1 |"), "{t}");
         assert!(t.contains("Yi et al. 2018"));
         let dir = tempfile::tempdir().unwrap();

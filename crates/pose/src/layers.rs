@@ -171,9 +171,63 @@ pub fn log_softmax_last(x: &Tensor) -> Result<Tensor> {
     d.broadcast_sub(&lse)
 }
 
-/// Softmax over the last dimension with the max detached.
+/// Softmax over the last dimension: one fused pass forward (a custom op), and the exact
+/// backward `∂x = y ⊙ (g − Σ g ⊙ y)` from tensor ops. On CPU f32 contiguous input; other
+/// inputs fall back to the tensor-op version.
 pub fn softmax_last(x: &Tensor) -> Result<Tensor> {
-    let m = x.max_keepdim(D::Minus1)?.detach();
-    let e = x.broadcast_sub(&m)?.exp()?;
-    e.broadcast_div(&e.sum_keepdim(D::Minus1)?)
+    if x.device().is_cpu() && x.dtype() == candle_core::DType::F32 {
+        x.contiguous()?.apply_op1(SoftmaxLast)
+    } else {
+        let m = x.max_keepdim(D::Minus1)?.detach();
+        let e = x.broadcast_sub(&m)?.exp()?;
+        e.broadcast_div(&e.sum_keepdim(D::Minus1)?)
+    }
+}
+
+struct SoftmaxLast;
+
+impl candle_core::CustomOp1 for SoftmaxLast {
+    fn name(&self) -> &'static str {
+        "ic-softmax-last"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &candle_core::CpuStorage,
+        layout: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let src = match storage {
+            candle_core::CpuStorage::F32(v) => v,
+            _ => candle_core::bail!("softmax_last: f32 only"),
+        };
+        let Some((start, end)) = layout.contiguous_offsets() else {
+            candle_core::bail!("softmax_last: contiguous input required")
+        };
+        let src = &src[start..end];
+        let dims = layout.shape().dims();
+        let n = *dims.last().unwrap_or(&1);
+        let mut dst = vec![0f32; src.len()];
+        if n > 0 {
+            for (row, out) in src.chunks_exact(n).zip(dst.chunks_exact_mut(n)) {
+                let m = row.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                let mut sum = 0f32;
+                for (o, &v) in out.iter_mut().zip(row) {
+                    let e = (v - m).exp();
+                    *o = e;
+                    sum += e;
+                }
+                let inv = 1.0 / sum;
+                for o in out.iter_mut() {
+                    *o *= inv;
+                }
+            }
+        }
+        Ok((candle_core::CpuStorage::F32(dst), layout.shape().clone()))
+    }
+
+    fn bwd(&self, _arg: &Tensor, res: &Tensor, grad_res: &Tensor) -> Result<Option<Tensor>> {
+        let gy = (grad_res * res)?;
+        let s = gy.sum_keepdim(D::Minus1)?;
+        Ok(Some((gy - res.broadcast_mul(&s)?)?))
+    }
 }

@@ -201,6 +201,21 @@ impl PoseNet {
         &self.cfg
     }
 
+    /// The DGCNN features `(θx [B, M, d], θy [B, N, d])`.
+    pub fn encode(&self, batch: &PairBatch, train: bool) -> CResult<(Tensor, Tensor)> {
+        let tx = self
+            .encoder
+            .forward_t(&batch.model, &batch.model_graph, train)?
+            .transpose(1, 2)?
+            .contiguous()?;
+        let ty = self
+            .encoder
+            .forward_t(&batch.observed, &batch.observed_graph, train)?
+            .transpose(1, 2)?
+            .contiguous()?;
+        Ok((tx, ty))
+    }
+
     /// `(fx [B, M, d], fy [B, N, d])`.
     pub fn embed(&self, batch: &PairBatch, train: bool) -> CResult<(Tensor, Tensor)> {
         let tx = self

@@ -106,6 +106,11 @@ impl Trainer {
         &self.config
     }
 
+    /// Changes the planned iteration count (e.g. to extend a resumed run).
+    pub fn set_iterations(&mut self, iterations: u64) {
+        self.config.train.iterations = iterations;
+    }
+
     pub fn iteration(&self) -> u64 {
         self.iteration
     }

@@ -43,11 +43,12 @@ impl MultiHeadAttention {
     /// `query`: `[B, Pq, d]`, `context`: `[B, Pk, d]` → `[B, Pq, d]`.
     pub fn forward(&self, query: &Tensor, context: &Tensor) -> Result<Tensor> {
         let (b, pq, d) = query.dims3()?;
-        let q = self.split(&self.q.forward(query)?)?;
+        let scale = 1.0 / ((d / self.heads) as f64).sqrt();
+        // Scaling Q (P·d values) instead of the scores (P·P' values).
+        let q = self.split(&(self.q.forward(query)? * scale)?)?;
         let k = self.split(&self.k.forward(context)?)?;
         let v = self.split(&self.v.forward(context)?)?;
-        let scale = 1.0 / ((d / self.heads) as f64).sqrt();
-        let att = softmax_last(&(q.matmul(&k.t()?)? * scale)?)?;
+        let att = softmax_last(&q.matmul(&k.t()?)?)?;
         let out = att.matmul(&v)?.transpose(1, 2)?.reshape((b, pq, d))?;
         self.o.forward(&out)
     }
