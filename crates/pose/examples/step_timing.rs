@@ -11,7 +11,10 @@ use ic_pose::{Head, PoseConfig, Trainer};
 use rand::{Rng, SeedableRng};
 
 fn main() {
-    let a: Vec<usize> = std::env::args().skip(1).map(|s| s.parse().unwrap()).collect();
+    let a: Vec<usize> = std::env::args()
+        .skip(1)
+        .map(|s| s.parse().unwrap())
+        .collect();
     let (emb, k, m, n, b, ff) = (a[0], a[1], a[2], a[3], a[4], a[5]);
     let steps = a.get(6).copied().unwrap_or(3);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
@@ -26,7 +29,9 @@ fn main() {
         .map(|_| Assignment {
             model_count: m,
             observed_count: n,
-            observed_to_model: (0..n).map(|j| (j % 2 == 0).then_some((j % m) as u32)).collect(),
+            observed_to_model: (0..n)
+                .map(|j| (j % 2 == 0).then_some((j % m) as u32))
+                .collect(),
         })
         .collect();
     for head in [Head::Softmax, Head::Ot] {

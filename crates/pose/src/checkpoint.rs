@@ -53,14 +53,11 @@ pub fn save(
             source,
         })?;
     }
-    ic_geometry::io::write_atomic_with(
-        path,
-        |w| w.write_all(&bytes),
-        |e| e,
-    )
-    .map_err(|source| PoseError::Io {
-        path: path.to_path_buf(),
-        source,
+    ic_geometry::io::write_atomic_with(path, |w| w.write_all(&bytes), |e| e).map_err(|source| {
+        PoseError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
     })
 }
 
@@ -96,9 +93,12 @@ pub fn read_metadata(path: &Path) -> Result<HashMap<String, String>> {
 /// The configuration embedded in a checkpoint.
 pub fn read_config(path: &Path) -> Result<PoseConfig> {
     let meta = read_metadata(path)?;
-    let text = meta
-        .get(CONFIG_KEY)
-        .ok_or_else(|| ck_err(path, format!("no {CONFIG_KEY} metadata (not an ic_pose checkpoint?)")))?;
+    let text = meta.get(CONFIG_KEY).ok_or_else(|| {
+        ck_err(
+            path,
+            format!("no {CONFIG_KEY} metadata (not an ic_pose checkpoint?)"),
+        )
+    })?;
     let cfg: PoseConfig =
         serde_json::from_str(text).map_err(|e| ck_err(path, format!("bad config: {e}")))?;
     cfg.net

@@ -86,7 +86,12 @@ impl Dgcnn {
         let mut edges = Vec::new();
         let mut c = 3;
         for (i, &o) in cfg.edge_channels.iter().enumerate() {
-            edges.push(EdgeConv::new(vb.pp(format!("edge{i}")), c, o, cfg.bn_momentum)?);
+            edges.push(EdgeConv::new(
+                vb.pp(format!("edge{i}")),
+                c,
+                o,
+                cfg.bn_momentum,
+            )?);
             c = o;
         }
         let total: usize = cfg.edge_channels.iter().sum();

@@ -86,7 +86,11 @@ impl PoseEstimator {
         let k = self.config.net.k.max(3);
         check_points("model points", model_points, k)?;
         check_points("observed points", observed_points, k)?;
-        let batch = PairBatch::new(&[(model_points, observed_points)], self.config.net.k, &self.device)?;
+        let batch = PairBatch::new(
+            &[(model_points, observed_points)],
+            self.config.net.k,
+            &self.device,
+        )?;
         let out = self.net.forward_t(&batch, false)?;
         Ok(HeadOutput {
             log_p: out.log_p.detach(),
@@ -97,7 +101,11 @@ impl PoseEstimator {
     /// The pose mapping `model_points` (model frame) onto `observed_points` (camera frame).
     ///
     /// Errors: fewer points than the network's k (or 3), non-finite coordinates.
-    pub fn estimate(&self, model_points: &[Vec3], observed_points: &[Vec3]) -> Result<PoseEstimate> {
+    pub fn estimate(
+        &self,
+        model_points: &[Vec3],
+        observed_points: &[Vec3],
+    ) -> Result<PoseEstimate> {
         let out = self.infer(model_points, observed_points)?;
         let matches = out.matches()?.remove(0);
         let r = recover_pose(model_points, observed_points, &matches, &self.recovery)?;

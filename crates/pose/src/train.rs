@@ -67,12 +67,11 @@ impl Trainer {
         let config = checkpoint::read_config(path)?;
         let state = checkpoint::read_state(path)?;
         let mut t = Self::new(config, state.seed)?;
-        let tensors = candle_core::safetensors::load(path, &t.device).map_err(|e| {
-            PoseError::Checkpoint {
+        let tensors =
+            candle_core::safetensors::load(path, &t.device).map_err(|e| PoseError::Checkpoint {
                 path: path.to_path_buf(),
                 message: e.to_string(),
-            }
-        })?;
+            })?;
         t.load_weights(&tensors, path)?;
         t.adam
             .load_state(&tensors, state.adam_step)

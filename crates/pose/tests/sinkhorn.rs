@@ -26,12 +26,20 @@ fn scores(b: usize, m: usize, n: usize, scale: f32, seed: u64) -> Tensor {
 }
 
 fn flat(t: &Tensor) -> Vec<f32> {
-    t.to_dtype(DType::F32).unwrap().flatten_all().unwrap().to_vec1().unwrap()
+    t.to_dtype(DType::F32)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap()
 }
 
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 fn max_abs(a: &[f32]) -> f32 {
@@ -70,13 +78,19 @@ fn grad_of(
     let lp = f(var.as_tensor(), ALPHA, LAMBDA, k).unwrap();
     let loss = (&lp * w).unwrap().sum_all().unwrap();
     let grads = loss.backward().unwrap();
-    let g = grads.get(var.as_tensor()).expect("no gradient for the scores");
+    let g = grads
+        .get(var.as_tensor())
+        .expect("no gradient for the scores");
     (flat(&lp), flat(g))
 }
 
 fn upstream(b: usize, m: usize, n: usize, seed: u64) -> Tensor {
-    Tensor::from_vec(randn(b * (m + 1) * (n + 1), 1.0, seed), (b, m + 1, n + 1), &Device::Cpu)
-        .unwrap()
+    Tensor::from_vec(
+        randn(b * (m + 1) * (n + 1), 1.0, seed),
+        (b, m + 1, n + 1),
+        &Device::Cpu,
+    )
+    .unwrap()
 }
 
 #[test]
@@ -96,7 +110,12 @@ fn marginals_match_a_and_b() {
 fn fused_matches_reference_value() {
     // The last case exceeds the parallel grain (rows split over rayon tasks); the second has
     // rows shorter than one vector lane block and the third a non-multiple of the lane width.
-    for &(b, m, n, seed) in &[(2, 7, 5, 4u64), (3, 1, 1, 5), (1, 64, 48, 6), (2, 200, 150, 7)] {
+    for &(b, m, n, seed) in &[
+        (2, 7, 5, 4u64),
+        (3, 1, 1, 5),
+        (1, 64, 48, 6),
+        (2, 200, 150, 7),
+    ] {
         let s = scores(b, m, n, 1.0, seed);
         let fused = flat(&log_optimal_transport(&s, ALPHA, LAMBDA, K).unwrap());
         let refr = flat(&log_optimal_transport_reference(&s, ALPHA, LAMBDA, K).unwrap());
@@ -107,7 +126,12 @@ fn fused_matches_reference_value() {
 
 #[test]
 fn fused_matches_reference_gradient() {
-    for &(b, m, n, seed) in &[(2, 7, 5, 8u64), (1, 1, 3, 9), (1, 64, 48, 10), (2, 200, 150, 11)] {
+    for &(b, m, n, seed) in &[
+        (2, 7, 5, 8u64),
+        (1, 1, 3, 9),
+        (1, 64, 48, 10),
+        (2, 200, 150, 11),
+    ] {
         let s = scores(b, m, n, 1.0, seed);
         let w = upstream(b, m, n, seed + 100);
         let (vf, gf) = grad_of(log_optimal_transport, &s, &w, K);
@@ -115,7 +139,10 @@ fn fused_matches_reference_gradient() {
         assert!(max_abs_diff(&vf, &vr) < 1e-4);
         let d = max_abs_diff(&gf, &gr);
         let scale = max_abs(&gr).max(1.0);
-        assert!(d < 1e-4 * scale, "grad diff {d} (max |g| {scale}) at B={b} M={m} N={n}");
+        assert!(
+            d < 1e-4 * scale,
+            "grad diff {d} (max |g| {scale}) at B={b} M={m} N={n}"
+        );
     }
 }
 
@@ -132,7 +159,12 @@ fn gradient_matches_finite_differences() {
     let loss = |v: &[f64]| -> f64 {
         let t = Tensor::from_vec(v.to_vec(), (1, m, n), &Device::Cpu).unwrap();
         let lp = log_optimal_transport_reference(&t, ALPHA, LAMBDA, K).unwrap();
-        (&lp * &w64).unwrap().sum_all().unwrap().to_scalar::<f64>().unwrap()
+        (&lp * &w64)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .to_scalar::<f64>()
+            .unwrap()
     };
     let eps = 1e-5;
     for i in 0..m * n {
@@ -148,18 +180,27 @@ fn gradient_matches_finite_differences() {
         );
     }
     // And the reference's own autograd in f64 agrees with the same differences (detached max).
-    let var = Var::from_tensor(&Tensor::from_vec(s64.clone(), (1, m, n), &Device::Cpu).unwrap())
-        .unwrap();
+    let var =
+        Var::from_tensor(&Tensor::from_vec(s64.clone(), (1, m, n), &Device::Cpu).unwrap()).unwrap();
     let lp = log_optimal_transport_reference(var.as_tensor(), ALPHA, LAMBDA, K).unwrap();
     let grads = (&lp * &w64).unwrap().sum_all().unwrap().backward().unwrap();
-    let g64: Vec<f64> = grads.get(var.as_tensor()).unwrap().flatten_all().unwrap().to_vec1().unwrap();
+    let g64: Vec<f64> = grads
+        .get(var.as_tensor())
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
     for (i, &g) in g64.iter().enumerate() {
         let mut p = s64.clone();
         p[i] += eps;
         let mut q = s64.clone();
         q[i] -= eps;
         let fd = (loss(&p) - loss(&q)) / (2.0 * eps);
-        assert!((g - fd).abs() <= 1e-6 * fd.abs().max(1.0), "reference entry {i}: {g} vs {fd}");
+        assert!(
+            (g - fd).abs() <= 1e-6 * fd.abs().max(1.0),
+            "reference entry {i}: {g} vs {fd}"
+        );
     }
 }
 
@@ -168,31 +209,45 @@ fn assert_sane(s: &Tensor, label: &str) {
     let (b, m, n) = s.dims3().unwrap();
     let w = upstream(b, m, n, 77);
     for (name, f) in [
-        ("fused", log_optimal_transport as fn(&Tensor, f32, f32, usize) -> _),
+        (
+            "fused",
+            log_optimal_transport as fn(&Tensor, f32, f32, usize) -> _,
+        ),
         ("reference", log_optimal_transport_reference),
     ] {
         let (v, g) = grad_of(f, s, &w, K);
         let sv = flat(s);
         for (idx, &x) in v.iter().enumerate() {
             let (i, j) = ((idx / (n + 1)) % (m + 1), idx % (n + 1));
-            let neg_inf_score = i < m && j < n && sv[(idx / ((m + 1) * (n + 1))) * m * n + i * n + j] == f32::NEG_INFINITY;
+            let neg_inf_score = i < m
+                && j < n
+                && sv[(idx / ((m + 1) * (n + 1))) * m * n + i * n + j] == f32::NEG_INFINITY;
             if neg_inf_score {
                 assert_eq!(x, f32::NEG_INFINITY, "{label}/{name}: entry {idx}");
             } else {
                 assert!(x.is_finite(), "{label}/{name}: value {x} at {idx}");
             }
         }
-        assert!(g.iter().all(|x| x.is_finite()), "{label}/{name}: non-finite gradient");
+        assert!(
+            g.iter().all(|x| x.is_finite()),
+            "{label}/{name}: non-finite gradient"
+        );
     }
 }
 
 #[test]
 fn degenerate_inputs_stay_finite() {
     let dev = &Device::Cpu;
-    assert_sane(&Tensor::zeros((2, 6, 4), DType::F32, dev).unwrap(), "all zero");
+    assert_sane(
+        &Tensor::zeros((2, 6, 4), DType::F32, dev).unwrap(),
+        "all zero",
+    );
     assert_sane(&Tensor::full(3.0f32, (1, 9, 9), dev).unwrap(), "all equal");
     assert_sane(&scores(1, 20, 15, 1e4, 20), "huge");
-    assert_sane(&Tensor::full(-1e4f32, (1, 5, 3), dev).unwrap(), "huge negative");
+    assert_sane(
+        &Tensor::full(-1e4f32, (1, 5, 3), dev).unwrap(),
+        "huge negative",
+    );
     assert_sane(&scores(2, 1, 6, 1.0, 21), "M = 1");
     assert_sane(&scores(2, 6, 1, 1.0, 22), "N = 1");
     assert_sane(&scores(1, 1, 1, 1.0, 23), "M = N = 1");
@@ -203,7 +258,15 @@ fn degenerate_inputs_stay_finite() {
     }
     assert_sane(&Tensor::from_vec(v, (1, 6, 5), dev).unwrap(), "-inf");
     // The all-equal case is symmetric: every real entry gets the same probability.
-    let lp = flat(&log_optimal_transport(&Tensor::zeros((1, 5, 5), DType::F32, dev).unwrap(), ALPHA, LAMBDA, K).unwrap());
+    let lp = flat(
+        &log_optimal_transport(
+            &Tensor::zeros((1, 5, 5), DType::F32, dev).unwrap(),
+            ALPHA,
+            LAMBDA,
+            K,
+        )
+        .unwrap(),
+    );
     let first = lp[0];
     for i in 0..5 {
         for j in 0..5 {
@@ -227,7 +290,8 @@ fn batch_pairs_are_independent() {
     let s = scores(3, 30, 20, 1.0, 40);
     let all = flat(&log_optimal_transport(&s, ALPHA, LAMBDA, K).unwrap());
     for b in 0..3 {
-        let one = flat(&log_optimal_transport(&s.narrow(0, b, 1).unwrap(), ALPHA, LAMBDA, K).unwrap());
+        let one =
+            flat(&log_optimal_transport(&s.narrow(0, b, 1).unwrap(), ALPHA, LAMBDA, K).unwrap());
         assert_eq!(&all[b * 31 * 21..(b + 1) * 31 * 21], &one[..]);
     }
 }

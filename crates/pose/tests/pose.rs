@@ -1,0 +1,348 @@
+//! Behaviour tests of the pose network on tiny configurations (fast).
+
+use std::collections::HashMap;
+
+use candle_core::{Device, Tensor};
+use glam::{DVec3, Vec3};
+use ic_data::Assignment;
+use ic_geometry::Pose;
+use ic_pose::adam::is_trainable;
+use ic_pose::checkpoint::{self, CONFIG_KEY};
+use ic_pose::{
+    Head, Match, PairBatch, PoseConfig, PoseError, PoseEstimator, RecoveryOptions, Trainer,
+    nll_loss, recover_pose,
+};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// A synthetic pair: M random model points, N observed points of which the first `matched`
+/// are moved model points (ground truth known) and the rest noise.
+struct Pair {
+    model: Vec<Vec3>,
+    observed: Vec<Vec3>,
+    assignment: Assignment,
+    pose: Pose,
+}
+
+fn pair(seed: u64, m: usize, n: usize, matched: usize) -> Pair {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let model: Vec<Vec3> = (0..m)
+        .map(|_| {
+            Vec3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            )
+        })
+        .collect();
+    let pose = Pose::from_axis_angle(
+        DVec3::new(rng.random(), rng.random(), rng.random()).normalize(),
+        rng.random_range(0.0..3.0),
+        DVec3::new(0.1, -0.2, 2.5),
+    );
+    let mut observed = Vec::with_capacity(n);
+    let mut truth = Vec::with_capacity(n);
+    for j in 0..n {
+        if j < matched {
+            let i = (j * 7 + 3) % m;
+            observed.push(pose.apply_f32(model[i]));
+            truth.push(Some(i as u32));
+        } else {
+            observed.push(Vec3::new(
+                rng.random(),
+                rng.random(),
+                2.5 + rng.random::<f32>(),
+            ));
+            truth.push(None);
+        }
+    }
+    Pair {
+        assignment: Assignment {
+            model_count: m,
+            observed_count: n,
+            observed_to_model: truth,
+        },
+        model,
+        observed,
+        pose,
+    }
+}
+
+fn tiny(head: Head) -> PoseConfig {
+    PoseConfig::tiny(head)
+}
+
+type PairRefs<'a> = (Vec<(&'a [Vec3], &'a [Vec3])>, Vec<&'a Assignment>);
+
+fn refs(pairs: &[Pair]) -> PairRefs<'_> {
+    (
+        pairs
+            .iter()
+            .map(|p| (&p.model[..], &p.observed[..]))
+            .collect(),
+        pairs.iter().map(|p| &p.assignment).collect(),
+    )
+}
+
+fn gradients_of(trainer: &Trainer, pairs: &[Pair]) -> (f32, HashMap<String, f32>) {
+    let (pp, aa) = refs(pairs);
+    let batch = PairBatch::new(&pp, trainer.config().net.k, &Device::Cpu).unwrap();
+    let out = trainer.net().forward_t(&batch, true).unwrap();
+    let loss = nll_loss(&out, &aa).unwrap();
+    let grads = loss.backward().unwrap();
+    let mut norms = HashMap::new();
+    for (name, var) in trainer.varmap().data().lock().unwrap().iter() {
+        if !is_trainable(name) {
+            continue;
+        }
+        let g = grads
+            .get(var.as_tensor())
+            .map(|g| {
+                g.abs()
+                    .unwrap()
+                    .sum_all()
+                    .unwrap()
+                    .to_scalar::<f32>()
+                    .unwrap()
+            })
+            .unwrap_or(0.0);
+        norms.insert(name.clone(), g);
+    }
+    (loss.to_scalar::<f32>().unwrap(), norms)
+}
+
+#[test]
+fn every_parameter_receives_a_gradient() {
+    for head in [Head::Softmax, Head::Ot] {
+        let trainer = Trainer::new(tiny(head), 3).unwrap();
+        let pairs = vec![pair(1, 32, 24, 18), pair(2, 32, 24, 20)];
+        let (loss, norms) = gradients_of(&trainer, &pairs);
+        assert!(loss.is_finite() && loss > 0.0, "{head:?}: loss {loss}");
+        assert!(
+            norms.len() > 20,
+            "{head:?}: only {} parameters",
+            norms.len()
+        );
+        for (name, g) in &norms {
+            assert!(g.is_finite() && *g > 0.0, "{head:?}: {name} gradient {g}");
+        }
+    }
+}
+
+#[test]
+fn degenerate_inputs_give_finite_loss_and_gradients() {
+    for head in [Head::Softmax, Head::Ot] {
+        let trainer = Trainer::new(tiny(head), 4).unwrap();
+        // All points identical, some "matched".
+        let same = Pair {
+            model: vec![Vec3::splat(0.3); 32],
+            observed: vec![Vec3::new(0.0, 0.0, 2.0); 24],
+            assignment: Assignment {
+                model_count: 32,
+                observed_count: 24,
+                observed_to_model: (0..24).map(|j| (j % 3 == 0).then_some(j as u32)).collect(),
+            },
+            pose: Pose::IDENTITY,
+        };
+        // No match at all.
+        let mut none = pair(5, 32, 24, 0);
+        none.assignment.observed_to_model = vec![None; 24];
+        for pairs in [vec![same], vec![none]] {
+            let (loss, norms) = gradients_of(&trainer, &pairs);
+            assert!(loss.is_finite(), "{head:?}: loss {loss}");
+            for (name, g) in &norms {
+                assert!(g.is_finite(), "{head:?}: {name} gradient {g}");
+            }
+        }
+    }
+}
+
+fn overfit(head: Head) -> (f32, f32) {
+    let mut cfg = tiny(head);
+    cfg.net.emb_dims = 32;
+    cfg.net.ff_dims = 64;
+    cfg.train.learning_rate = 3e-3;
+    let mut trainer = Trainer::new(cfg, 7).unwrap();
+    let matched = if head == Head::Ot { 20 } else { 24 };
+    let pairs = vec![pair(11, 32, 24, matched), pair(12, 32, 24, matched)];
+    let (pp, aa) = refs(&pairs);
+    let first = trainer.step_pairs(&pp, &aa).unwrap().loss;
+    let mut last = first;
+    for _ in 0..300 {
+        last = trainer.step_pairs(&pp, &aa).unwrap().loss;
+    }
+    (first, last)
+}
+
+#[test]
+fn tiny_model_overfits_one_batch_softmax() {
+    let (first, last) = overfit(Head::Softmax);
+    assert!(last < 0.1 * first, "softmax loss {first} → {last}");
+}
+
+#[test]
+fn tiny_model_overfits_one_batch_ot() {
+    let (first, last) = overfit(Head::Ot);
+    assert!(last < 0.1 * first, "ot loss {first} → {last}");
+}
+
+fn log_p(est: &PoseEstimator, p: &Pair) -> Vec<f32> {
+    est.infer(&p.model, &p.observed)
+        .unwrap()
+        .log_p
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap()
+}
+
+#[test]
+fn saved_and_reloaded_weights_give_bit_identical_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    for head in [Head::Softmax, Head::Ot] {
+        let mut trainer = Trainer::new(tiny(head), 9).unwrap();
+        let pairs = vec![pair(21, 32, 24, 20), pair(22, 32, 24, 20)];
+        let (pp, aa) = refs(&pairs);
+        for _ in 0..3 {
+            trainer.step_pairs(&pp, &aa).unwrap();
+        }
+        let path = dir.path().join(format!("{}.safetensors", head.as_str()));
+        trainer.save_weights(&path).unwrap();
+        let loaded = PoseEstimator::load(&path).unwrap();
+        let probe = pair(23, 40, 30, 25);
+        let a = log_p(&trainer.estimator(), &probe);
+        let b = log_p(&loaded, &probe);
+        assert_eq!(a.len(), b.len());
+        assert!(
+            a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()),
+            "{head:?}"
+        );
+        assert_eq!(loaded.config(), trainer.config());
+    }
+}
+
+fn weights(t: &Trainer) -> Vec<(String, Vec<u32>)> {
+    let mut out: Vec<(String, Vec<u32>)> = t
+        .varmap()
+        .data()
+        .lock()
+        .unwrap()
+        .iter()
+        .map(|(k, v)| {
+            let bits = v
+                .as_tensor()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap()
+                .iter()
+                .map(|x| x.to_bits())
+                .collect();
+            (k.clone(), bits)
+        })
+        .collect();
+    out.sort();
+    out
+}
+
+#[test]
+fn resumed_run_matches_an_uninterrupted_one() {
+    let dir = tempfile::tempdir().unwrap();
+    for head in [Head::Softmax, Head::Ot] {
+        let batches: Vec<Vec<Pair>> = (0..4)
+            .map(|i| vec![pair(100 + 2 * i, 32, 24, 20), pair(101 + 2 * i, 32, 24, 18)])
+            .collect();
+        let run = |t: &mut Trainer, range: std::ops::Range<usize>| -> Vec<u32> {
+            range
+                .map(|i| {
+                    let (pp, aa) = refs(&batches[i]);
+                    t.step_pairs(&pp, &aa).unwrap().loss.to_bits()
+                })
+                .collect()
+        };
+        let mut full = Trainer::new(tiny(head), 5).unwrap();
+        let full_losses = run(&mut full, 0..4);
+
+        let mut first = Trainer::new(tiny(head), 5).unwrap();
+        let mut losses = run(&mut first, 0..2);
+        let path = dir.path().join("latest.safetensors");
+        first.save(&path).unwrap();
+        drop(first);
+        let mut resumed = Trainer::resume(&path).unwrap();
+        assert_eq!(resumed.iteration(), 2);
+        assert_eq!(resumed.seed(), 5);
+        losses.extend(run(&mut resumed, 2..4));
+        assert_eq!(losses, full_losses, "{head:?}");
+        assert!(
+            weights(&resumed) == weights(&full),
+            "{head:?}: weights differ"
+        );
+    }
+}
+
+#[test]
+fn estimator_rejects_bad_inputs_and_mismatched_checkpoints() {
+    let dir = tempfile::tempdir().unwrap();
+    let trainer = Trainer::new(tiny(Head::Ot), 1).unwrap();
+    let path = dir.path().join("w.safetensors");
+    trainer.save_weights(&path).unwrap();
+    let est = PoseEstimator::load(&path).unwrap();
+    let p = pair(1, 32, 24, 20);
+    assert!(est.estimate(&p.model, &p.observed).is_ok());
+    assert!(matches!(
+        est.estimate(&p.model[..2], &p.observed),
+        Err(PoseError::TooFewPoints { .. })
+    ));
+    let mut bad = p.observed.clone();
+    bad[5].y = f32::NAN;
+    assert!(matches!(
+        est.estimate(&p.model, &bad),
+        Err(PoseError::NonFinite { index: 5, .. })
+    ));
+    // A checkpoint whose configuration does not match its tensors.
+    let mut cfg = trainer.config().clone();
+    cfg.net.emb_dims = 32;
+    let tensors: Vec<(String, Tensor)> = candle_core::safetensors::load(&path, &Device::Cpu)
+        .unwrap()
+        .into_iter()
+        .collect();
+    let wrong = dir.path().join("wrong.safetensors");
+    let meta = HashMap::from([(CONFIG_KEY.to_string(), serde_json::to_string(&cfg).unwrap())]);
+    checkpoint::save(&wrong, &tensors, meta).unwrap();
+    assert!(matches!(
+        PoseEstimator::load(&wrong),
+        Err(PoseError::Checkpoint { .. })
+    ));
+    // Not a checkpoint at all.
+    let junk = dir.path().join("junk.safetensors");
+    std::fs::write(&junk, b"nope").unwrap();
+    assert!(matches!(
+        PoseEstimator::load(&junk),
+        Err(PoseError::Checkpoint { .. })
+    ));
+}
+
+#[test]
+fn perfect_matches_recover_the_pose() {
+    let p = pair(42, 64, 48, 48);
+    let matches: Vec<Match> = p
+        .assignment
+        .observed_to_model
+        .iter()
+        .enumerate()
+        .map(|(j, i)| Match {
+            observed: j as u32,
+            model: i.unwrap(),
+            probability: 0.9,
+            outlier: false,
+        })
+        .collect();
+    let one_shot = RecoveryOptions {
+        refine: ic_pose::Refine::None,
+        ..RecoveryOptions::default()
+    };
+    let r = recover_pose(&p.model, &p.observed, &matches, &one_shot).unwrap();
+    assert!(r.pose.rotation_angle_to(&p.pose).to_degrees() < 1e-3);
+    assert!((r.pose.translation - p.pose.translation).length() < 1e-4);
+    assert_eq!(r.inlier_count, 48);
+}

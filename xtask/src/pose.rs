@@ -1,0 +1,581 @@
+//! `cargo xtask train-pose` and `cargo xtask eval-pose`: training and evaluation of the
+//! `ic_pose` network on object-alone samples rendered on the fly by `ic_data`.
+//!
+//! Training objects: ids 000–749 of the folder (`--objects`, the blob layout); objects
+//! 750–799 form the fixed validation set used to pick the best checkpoint; 800–999 (the test
+//! split) are left untouched for `eval-pose`.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use ic_data::{
+    Corpus, CorpusOptions, FolderSplit, ObjectSample, ObjectSampleConfig, ObjectSampleGenerator,
+    Prefetcher, Split,
+};
+use ic_pose::{Head, PoseConfig, PoseEstimator, Refine, Trainer};
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// Seed of the validation sample stream (fixed whatever the run's seed).
+const VALIDATION_SEED: u64 = 0x7661_6c69;
+
+#[derive(clap::Args)]
+pub struct TrainArgs {
+    /// `cpu` (≈ 1.5 h on one core) or `paper` (GPU, `cuda` feature); `tiny` for smoke tests.
+    #[arg(long, default_value = "cpu")]
+    preset: String,
+    /// `softmax` or `ot`.
+    #[arg(long, default_value = "softmax")]
+    head: String,
+    /// Folder of meshes with numeric stems (the blob folder: 000–999).
+    #[arg(long)]
+    objects: PathBuf,
+    /// Output folder: latest.safetensors (resumable), best.safetensors (weights), CSV logs.
+    #[arg(long)]
+    out: PathBuf,
+    #[arg(long)]
+    iterations: Option<u64>,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Continue from `<out>/latest.safetensors` (configuration and seed come from it).
+    #[arg(long)]
+    resume: bool,
+    /// Compute threads (RAYON_NUM_THREADS); the data prefetcher adds `--data-workers` threads.
+    #[arg(long)]
+    threads: Option<usize>,
+    #[arg(long, default_value_t = 1)]
+    data_workers: usize,
+    /// Save `latest.safetensors` every this many seconds.
+    #[arg(long, default_value_t = 300)]
+    checkpoint_secs: u64,
+    // Overrides of the preset.
+    #[arg(long)]
+    batch_size: Option<usize>,
+    #[arg(long)]
+    emb_dims: Option<usize>,
+    #[arg(long)]
+    ff_dims: Option<usize>,
+    #[arg(long)]
+    k: Option<usize>,
+    #[arg(long)]
+    model_points: Option<usize>,
+    #[arg(long)]
+    observed_points: Option<usize>,
+    #[arg(long)]
+    learning_rate: Option<f64>,
+    #[arg(long)]
+    validate_every: Option<u64>,
+    #[arg(long)]
+    validation_count: Option<usize>,
+}
+
+#[derive(clap::Args)]
+pub struct EvalArgs {
+    /// A checkpoint (weights-only or training).
+    #[arg(long)]
+    model: PathBuf,
+    #[arg(long)]
+    objects: PathBuf,
+    /// `test` (ids 800–999), `val` (750–799, the validation objects held out of training) or
+    /// `train` (000–749).
+    #[arg(long, default_value = "test")]
+    split: String,
+    #[arg(long, default_value_t = 500)]
+    count: u64,
+    #[arg(long, default_value_t = 2021)]
+    seed: u64,
+    /// `icp` (the default of `PoseEstimator`) or `none` (the one-shot estimate).
+    #[arg(long, default_value = "icp")]
+    refine: String,
+    /// Drop correspondences below this probability.
+    #[arg(long)]
+    min_probability: Option<f32>,
+    /// Unweighted Procrustes.
+    #[arg(long)]
+    unweighted: bool,
+    /// Where to write the JSON (default `<model>.eval-<split>.json`).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+static STOP: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_signal(_: libc::c_int) {
+    STOP.store(true, Ordering::SeqCst);
+}
+
+fn install_signal_handlers() {
+    // SAFETY: the handler only stores into an atomic, which is async-signal-safe.
+    unsafe {
+        libc::signal(libc::SIGINT, on_signal as *const () as libc::sighandler_t);
+        libc::signal(libc::SIGTERM, on_signal as *const () as libc::sighandler_t);
+    }
+}
+
+fn set_threads(threads: Option<usize>) {
+    if let Some(t) = threads {
+        // SAFETY: called first thing in the command, before any other thread exists.
+        unsafe { std::env::set_var("RAYON_NUM_THREADS", t.max(1).to_string()) };
+    }
+}
+
+fn blob_split(validation: bool) -> FolderSplit {
+    if validation {
+        FolderSplit::IdRange {
+            train: (0, 749),
+            test: (750, 799),
+        }
+    } else {
+        FolderSplit::blobs()
+    }
+}
+
+fn sample_config(cfg: &PoseConfig) -> ObjectSampleConfig {
+    ObjectSampleConfig {
+        model_points: cfg.train.model_points,
+        observed_points: cfg.train.observed_points,
+        ..ObjectSampleConfig::default()
+    }
+}
+
+/// Rotation error (degrees) and squared translation error of an estimate.
+fn errors(est: &ic_geometry::Pose, truth: &ic_geometry::Pose) -> (f64, f64) {
+    (
+        est.rotation_angle_to(truth).to_degrees(),
+        (est.translation - truth.translation).length_squared(),
+    )
+}
+
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct Metrics {
+    pub count: usize,
+    pub failures: usize,
+    pub rotation_median_deg: f64,
+    pub rotation_mean_deg: f64,
+    pub rotation_acc_5: f64,
+    pub rotation_acc_10: f64,
+    pub rotation_acc_15: f64,
+    /// Median of ‖t̂ − t‖² (normalised units²), as the paper.
+    pub translation_sq_median: f64,
+    /// Median of ‖t̂ − t‖.
+    pub translation_l2_median: f64,
+    pub translation_acc_1e3: f64,
+    pub translation_acc_5e3: f64,
+    pub translation_acc_1e2: f64,
+    /// Arg-max correspondence accuracy over matched observed points.
+    pub correspondence_accuracy: f64,
+    pub seconds_per_case: f64,
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// Evaluates `estimator` on `samples` (a failed estimate counts as 180° / infinite error).
+fn evaluate<'a>(
+    estimator: &PoseEstimator,
+    samples: impl Iterator<Item = Result<ObjectSample>> + 'a,
+    mut progress: impl FnMut(usize),
+) -> Result<Metrics> {
+    let clock = Instant::now();
+    let (mut rot, mut trans) = (Vec::new(), Vec::new());
+    let (mut right, mut total) = (0usize, 0usize);
+    let mut failures = 0;
+    for (i, s) in samples.enumerate() {
+        let s = s?;
+        let out = estimator.infer(&s.model_points, &s.observed_points)?;
+        let matches = out.matches()?.remove(0);
+        if let Some(acc) =
+            ic_pose::correspondence_accuracy(std::slice::from_ref(&matches), &[&s.assignment])
+        {
+            let n = s.assignment.inlier_count();
+            right += (acc * n as f64).round() as usize;
+            total += n;
+        }
+        match ic_pose::recover_pose(
+            &s.model_points,
+            &s.observed_points,
+            &matches,
+            &estimator.recovery,
+        ) {
+            Ok(r) => {
+                let (er, et) = errors(&r.pose, &s.pose);
+                rot.push(er);
+                trans.push(et);
+            }
+            Err(e) => {
+                tracing::debug!("sample {}: {e}", s.index);
+                failures += 1;
+                rot.push(180.0);
+                trans.push(f64::INFINITY);
+            }
+        }
+        progress(i + 1);
+    }
+    let n = rot.len();
+    let frac = |v: &[f64], t: f64| v.iter().filter(|&&x| x <= t).count() as f64 / n.max(1) as f64;
+    let mut m = Metrics {
+        count: n,
+        failures,
+        rotation_mean_deg: rot.iter().sum::<f64>() / n.max(1) as f64,
+        rotation_acc_5: frac(&rot, 5.0),
+        rotation_acc_10: frac(&rot, 10.0),
+        rotation_acc_15: frac(&rot, 15.0),
+        translation_acc_1e3: frac(&trans, 1e-3),
+        translation_acc_5e3: frac(&trans, 5e-3),
+        translation_acc_1e2: frac(&trans, 1e-2),
+        correspondence_accuracy: right as f64 / total.max(1) as f64,
+        seconds_per_case: clock.elapsed().as_secs_f64() / n.max(1) as f64,
+        ..Default::default()
+    };
+    m.rotation_median_deg = median(&mut rot);
+    let mut l2: Vec<f64> = trans.iter().map(|t| t.sqrt()).collect();
+    m.translation_sq_median = median(&mut trans);
+    m.translation_l2_median = median(&mut l2);
+    Ok(m)
+}
+
+fn apply_overrides(cfg: &mut PoseConfig, a: &TrainArgs) {
+    if let Some(v) = a.iterations {
+        cfg.train.iterations = v;
+    }
+    if let Some(v) = a.batch_size {
+        cfg.train.batch_size = v;
+    }
+    if let Some(v) = a.emb_dims {
+        cfg.net.emb_dims = v;
+    }
+    if let Some(v) = a.ff_dims {
+        cfg.net.ff_dims = v;
+    }
+    if let Some(v) = a.k {
+        cfg.net.k = v;
+    }
+    if let Some(v) = a.model_points {
+        cfg.train.model_points = v;
+    }
+    if let Some(v) = a.observed_points {
+        cfg.train.observed_points = v;
+    }
+    if let Some(v) = a.learning_rate {
+        cfg.train.learning_rate = v;
+    }
+    if let Some(v) = a.validate_every {
+        cfg.train.validate_every = v;
+    }
+    if let Some(v) = a.validation_count {
+        cfg.train.validation_count = v;
+    }
+}
+
+/// Keeps the CSV rows up to `iteration` (after a resume, the rows written past the last
+/// checkpoint are dropped so the log matches an uninterrupted run) and opens it for append.
+fn open_csv(path: &Path, header: &str, keep_up_to: Option<u64>) -> Result<std::fs::File> {
+    let mut keep = String::new();
+    if let (Some(limit), Ok(text)) = (keep_up_to, std::fs::read_to_string(path)) {
+        for (i, line) in text.lines().enumerate() {
+            let it: Option<u64> = line.split(',').next().and_then(|s| s.parse().ok());
+            if i == 0 || it.is_some_and(|it| it <= limit) {
+                keep.push_str(line);
+                keep.push('\n');
+            }
+        }
+    }
+    if keep.is_empty() {
+        keep = format!("{header}\n");
+    }
+    std::fs::write(path, &keep).with_context(|| format!("writing {}", path.display()))?;
+    std::fs::OpenOptions::new()
+        .append(true)
+        .open(path)
+        .with_context(|| format!("opening {}", path.display()))
+}
+
+pub fn train(args: TrainArgs) -> Result<()> {
+    set_threads(args.threads);
+    install_signal_handlers();
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let latest = args.out.join("latest.safetensors");
+    let best_path = args.out.join("best.safetensors");
+    let mut trainer = if args.resume && latest.exists() {
+        let mut t = Trainer::resume(&latest)?;
+        eprintln!(
+            "resuming {} at iteration {}",
+            latest.display(),
+            t.iteration()
+        );
+        if let Some(it) = args.iterations {
+            t.set_iterations(it);
+        }
+        t
+    } else {
+        if args.resume {
+            eprintln!("--resume: no {} yet, starting fresh", latest.display());
+        }
+        let head: Head = args.head.parse()?;
+        let mut cfg = PoseConfig::preset(&args.preset, head)?;
+        apply_overrides(&mut cfg, &args);
+        Trainer::new(cfg, args.seed)?
+    };
+    let cfg = trainer.config().clone();
+    let seed = trainer.seed();
+    eprintln!("seed {seed}");
+    eprintln!("config {}", serde_json::to_string_pretty(&cfg)?);
+    eprintln!(
+        "threads: compute {}, data {}",
+        std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "all".into()),
+        args.data_workers
+    );
+
+    let options = CorpusOptions::default();
+    let train_corpus = Arc::new(Corpus::mesh_folder(
+        &args.objects,
+        &blob_split(true),
+        Split::Train,
+        options,
+    )?);
+    let val_corpus = Arc::new(Corpus::mesh_folder(
+        &args.objects,
+        &blob_split(true),
+        Split::Test,
+        options,
+    )?);
+    eprintln!(
+        "objects: {} train, {} validation (held out of the train split)",
+        train_corpus.len(),
+        val_corpus.len()
+    );
+    let scfg = sample_config(&cfg);
+    let generator = Arc::new(ObjectSampleGenerator::new(
+        train_corpus,
+        scfg.clone(),
+        seed,
+    )?);
+    let val_gen = ObjectSampleGenerator::new(val_corpus, scfg, VALIDATION_SEED)?;
+    let val_set: Vec<ObjectSample> = (0..cfg.train.validation_count as u64)
+        .map(|i| val_gen.sample(i))
+        .collect::<Result<_, _>>()?;
+
+    let b = cfg.train.batch_size;
+    let start = trainer.iteration();
+    let total = cfg.train.iterations;
+    if start >= total {
+        eprintln!("already at iteration {start} of {total}");
+        return Ok(());
+    }
+    let mut csv = open_csv(
+        &args.out.join("train.csv"),
+        "iteration,loss,accuracy,loss_avg,accuracy_avg,matched_fraction,samples_per_s,elapsed_s",
+        args.resume.then_some(start),
+    )?;
+    let mut val_csv = open_csv(
+        &args.out.join("val.csv"),
+        "iteration,rotation_median_deg,rotation_acc_5,rotation_acc_10,rotation_acc_15,translation_sq_median,translation_acc_1e2,correspondence_accuracy,elapsed_s",
+        args.resume.then_some(start),
+    )?;
+    let best_json = args.out.join("best.json");
+    let mut best_score: f64 = std::fs::read_to_string(&best_json)
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .and_then(|v| v["score"].as_f64())
+        .filter(|_| args.resume)
+        .unwrap_or(f64::NEG_INFINITY);
+
+    let gen2 = generator.clone();
+    let batches = Prefetcher::new(
+        start * b as u64,
+        Some((total - start) * b as u64),
+        args.data_workers,
+        2 * b,
+        move |i| gen2.sample(i),
+    )
+    .batches(b);
+
+    let bar = ProgressBar::new(total);
+    bar.set_position(start);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:30}] {pos}/{len} {msg} ETA {eta_precise}",
+        )?
+        .progress_chars("=> "),
+    );
+    let clock = Instant::now();
+    let mut last_ckpt = Instant::now();
+    let (mut loss_avg, mut acc_avg) = (f64::NAN, f64::NAN);
+    let ema = |avg: f64, x: f64| {
+        if avg.is_nan() {
+            x
+        } else {
+            0.95 * avg + 0.05 * x
+        }
+    };
+    let mut done = start;
+    for batch in batches {
+        let batch = batch?;
+        let stats = trainer.step(&batch)?;
+        done = trainer.iteration();
+        let loss = stats.loss as f64;
+        if !loss.is_finite() {
+            trainer.save(&args.out.join("nonfinite.safetensors"))?;
+            bail!("non-finite loss at iteration {done}");
+        }
+        loss_avg = ema(loss_avg, loss);
+        let acc = stats.accuracy.unwrap_or(f64::NAN);
+        if acc.is_finite() {
+            acc_avg = ema(acc_avg, acc);
+        }
+        let elapsed = clock.elapsed().as_secs_f64();
+        let sps = ((done - start) * b as u64) as f64 / elapsed;
+        writeln!(
+            csv,
+            "{done},{loss:.5},{acc:.4},{loss_avg:.5},{acc_avg:.4},{:.4},{sps:.3},{elapsed:.1}",
+            stats.matched as f64 / (b * cfg.train.observed_points) as f64
+        )?;
+        bar.set_position(done);
+        bar.set_message(format!(
+            "loss {loss_avg:.3} acc {acc_avg:.3} {sps:.2} samples/s ({:.0} pairs/h)",
+            sps * 3600.0
+        ));
+        let last = done >= total;
+        if !std::io::IsTerminal::is_terminal(&std::io::stderr()) && (done % 10 == 0 || last) {
+            eprintln!(
+                "iteration {done}/{total}: loss {loss_avg:.3} acc {acc_avg:.3} {:.0} pairs/h, {elapsed:.0} s",
+                sps * 3600.0
+            );
+        }
+        if done % cfg.train.validate_every == 0 || last {
+            let est = trainer.estimator();
+            let m = evaluate(&est, val_set.iter().cloned().map(Ok), |_| {})?;
+            writeln!(
+                val_csv,
+                "{done},{:.3},{:.4},{:.4},{:.4},{:.6},{:.4},{:.4},{elapsed:.1}",
+                m.rotation_median_deg,
+                m.rotation_acc_5,
+                m.rotation_acc_10,
+                m.rotation_acc_15,
+                m.translation_sq_median,
+                m.translation_acc_1e2,
+                m.correspondence_accuracy
+            )?;
+            let score = m.rotation_acc_15 - 1e-4 * m.rotation_median_deg;
+            let line = format!(
+                "iteration {done}: validation rot median {:.2}°, acc@5/10/15 {:.3}/{:.3}/{:.3}, corr acc {:.3}",
+                m.rotation_median_deg,
+                m.rotation_acc_5,
+                m.rotation_acc_10,
+                m.rotation_acc_15,
+                m.correspondence_accuracy
+            );
+            if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+                bar.println(line);
+            } else {
+                eprintln!("{line}");
+            }
+            if score > best_score {
+                best_score = score;
+                trainer.save_weights(&best_path)?;
+                let j = serde_json::json!({"iteration": done, "score": score, "validation": m});
+                std::fs::write(&best_json, serde_json::to_string_pretty(&j)?)?;
+            }
+        }
+        let stop = STOP.load(Ordering::SeqCst);
+        if last || stop || last_ckpt.elapsed().as_secs() >= args.checkpoint_secs {
+            csv.flush()?;
+            val_csv.flush()?;
+            trainer.save(&latest)?;
+            last_ckpt = Instant::now();
+        }
+        if stop {
+            bar.abandon_with_message(format!("interrupted; checkpoint saved at iteration {done}"));
+            eprintln!("interrupted: saved {} (iteration {done})", latest.display());
+            return Ok(());
+        }
+    }
+    bar.finish();
+    trainer.save_weights(&args.out.join("final.safetensors"))?;
+    eprintln!(
+        "done: {} iterations in {:.0} s; best weights {}",
+        done - start,
+        clock.elapsed().as_secs_f64(),
+        best_path.display()
+    );
+    Ok(())
+}
+
+pub fn eval(args: EvalArgs) -> Result<()> {
+    set_threads(args.threads);
+    let mut est = PoseEstimator::load(&args.model)?;
+    est.recovery.refine = match args.refine.as_str() {
+        "none" => Refine::None,
+        "icp" => Refine::Icp,
+        other => bail!("--refine {other:?}: expected none or icp"),
+    };
+    if let Some(p) = args.min_probability {
+        est.recovery.min_probability = p;
+    }
+    if args.unweighted {
+        est.recovery.weighted = false;
+    }
+    let (split, holdout) = match args.split.as_str() {
+        "test" => (Split::Test, false),
+        "val" => (Split::Test, true),
+        "train" => (Split::Train, true),
+        other => bail!("--split {other:?}: expected test, val or train"),
+    };
+    let cfg = est.config().clone();
+    let corpus = Arc::new(Corpus::mesh_folder(
+        &args.objects,
+        &blob_split(holdout),
+        split,
+        CorpusOptions::default(),
+    )?);
+    let generator = Arc::new(ObjectSampleGenerator::new(
+        corpus,
+        sample_config(&cfg),
+        args.seed,
+    )?);
+    let samples = Prefetcher::new(0, Some(args.count), 1, 8, move |i| generator.sample(i))
+        .map(|r| r.map_err(anyhow::Error::from));
+    let bar = ProgressBar::new(args.count);
+    let m = evaluate(&est, samples, |i| {
+        bar.set_position(i as u64);
+        if i % 50 == 0 && !std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+            eprintln!("{i}/{} cases", args.count);
+        }
+    })?;
+    bar.finish_and_clear();
+    let report = serde_json::json!({
+        "model": args.model,
+        "split": args.split,
+        "seed": args.seed,
+        "refine": args.refine,
+        "recovery": est.recovery,
+        "config": cfg,
+        "metrics": m,
+    });
+    let text = serde_json::to_string_pretty(&report)?;
+    println!("{text}");
+    let out = args.out.unwrap_or_else(|| {
+        let mut p = args.model.clone().into_os_string();
+        p.push(format!(".eval-{}-{}.json", args.split, args.refine));
+        PathBuf::from(p)
+    });
+    std::fs::write(&out, text).with_context(|| format!("writing {}", out.display()))?;
+    eprintln!("written {}", out.display());
+    Ok(())
+}
