@@ -218,16 +218,7 @@ impl PoseNet {
 
     /// `(fx [B, M, d], fy [B, N, d])`.
     pub fn embed(&self, batch: &PairBatch, train: bool) -> CResult<(Tensor, Tensor)> {
-        let tx = self
-            .encoder
-            .forward_t(&batch.model, &batch.model_graph, train)?
-            .transpose(1, 2)?
-            .contiguous()?;
-        let ty = self
-            .encoder
-            .forward_t(&batch.observed, &batch.observed_graph, train)?
-            .transpose(1, 2)?
-            .contiguous()?;
+        let (tx, ty) = self.encode(batch, train)?;
         self.transformer.forward(&tx, &ty)
     }
 
