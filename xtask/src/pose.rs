@@ -143,14 +143,6 @@ fn sample_config(cfg: &PoseConfig) -> ObjectSampleConfig {
     }
 }
 
-/// Rotation error (degrees) and squared translation error of an estimate.
-fn errors(est: &ic_geometry::Pose, truth: &ic_geometry::Pose) -> (f64, f64) {
-    (
-        est.rotation_angle_to(truth).to_degrees(),
-        (est.translation - truth.translation).length_squared(),
-    )
-}
-
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct Metrics {
     pub count: usize,
@@ -172,19 +164,6 @@ pub struct Metrics {
     pub seconds_per_case: f64,
 }
 
-fn median(v: &mut [f64]) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
-}
-
 /// Evaluates `estimator` on `samples` (a failed estimate counts as 180° / infinite error).
 fn evaluate<'a>(
     estimator: &PoseEstimator,
@@ -192,7 +171,7 @@ fn evaluate<'a>(
     mut progress: impl FnMut(usize),
 ) -> Result<Metrics> {
     let clock = Instant::now();
-    let (mut rot, mut trans) = (Vec::new(), Vec::new());
+    let (mut rot, mut trans) = (Vec::<f64>::new(), Vec::<f64>::new());
     let (mut right, mut total) = (0usize, 0usize);
     let mut failures = 0;
     for (i, s) in samples.enumerate() {
@@ -213,9 +192,8 @@ fn evaluate<'a>(
             &estimator.recovery,
         ) {
             Ok(r) => {
-                let (er, et) = errors(&r.pose, &s.pose);
-                rot.push(er);
-                trans.push(et);
+                rot.push(ic_eval::rotation_error_deg(&r.pose, &s.pose));
+                trans.push(ic_eval::translation_error_sq(&r.pose, &s.pose));
             }
             Err(e) => {
                 tracing::debug!("sample {}: {e}", s.index);
@@ -227,7 +205,7 @@ fn evaluate<'a>(
         progress(i + 1);
     }
     let n = rot.len();
-    let frac = |v: &[f64], t: f64| v.iter().filter(|&&x| x <= t).count() as f64 / n.max(1) as f64;
+    let frac = ic_eval::accuracy;
     let mut m = Metrics {
         count: n,
         failures,
@@ -242,10 +220,10 @@ fn evaluate<'a>(
         seconds_per_case: clock.elapsed().as_secs_f64() / n.max(1) as f64,
         ..Default::default()
     };
-    m.rotation_median_deg = median(&mut rot);
-    let mut l2: Vec<f64> = trans.iter().map(|t| t.sqrt()).collect();
-    m.translation_sq_median = median(&mut trans);
-    m.translation_l2_median = median(&mut l2);
+    m.rotation_median_deg = ic_eval::median(&rot);
+    let l2: Vec<f64> = trans.iter().map(|t| t.sqrt()).collect();
+    m.translation_sq_median = ic_eval::median(&trans);
+    m.translation_l2_median = ic_eval::median(&l2);
     Ok(m)
 }
 

@@ -166,7 +166,7 @@ pub fn voxel_downsample_points(
     points: &[Vec3],
     voxel_size: f32,
 ) -> Result<Vec<Vec3>, GeometryError> {
-    // Building a PointCloud moves nothing but the Vec; callers with a cloud use the other form.
+    // Copies the points once into a cloud; callers that already hold a cloud use the other form.
     Ok(voxel_downsample(&PointCloud::from_points(points.to_vec()), voxel_size)?.points)
 }
 

@@ -140,18 +140,11 @@ fn invalid_ids_and_cameras_are_rejected() {
 }
 
 /// Voxel count of a point cloud (private stand-in for ic_geometry's down-sampling).
+/// Number of occupied voxels (one output point per occupied voxel).
 fn voxels(points: &[ic_geometry::glam::Vec3], size: f32) -> usize {
-    let set: std::collections::HashSet<(i32, i32, i32)> = points
-        .iter()
-        .map(|p| {
-            (
-                (p.x / size).floor() as i32,
-                (p.y / size).floor() as i32,
-                (p.z / size).floor() as i32,
-            )
-        })
-        .collect();
-    set.len()
+    ic_geometry::voxel_downsample_points(points, size)
+        .expect("finite points")
+        .len()
 }
 
 #[test]
