@@ -103,13 +103,13 @@ pub struct EvalArgs {
     threads: Option<usize>,
 }
 
-static STOP: AtomicBool = AtomicBool::new(false);
+pub(crate) static STOP: AtomicBool = AtomicBool::new(false);
 
 extern "C" fn on_signal(_: libc::c_int) {
     STOP.store(true, Ordering::SeqCst);
 }
 
-fn install_signal_handlers() {
+pub(crate) fn install_signal_handlers() {
     // SAFETY: the handler only stores into an atomic, which is async-signal-safe.
     unsafe {
         libc::signal(libc::SIGINT, on_signal as *const () as libc::sighandler_t);
@@ -117,7 +117,7 @@ fn install_signal_handlers() {
     }
 }
 
-fn set_threads(threads: Option<usize>) {
+pub(crate) fn set_threads(threads: Option<usize>) {
     if let Some(t) = threads {
         // SAFETY: called first thing in the command, before any other thread exists.
         unsafe { std::env::set_var("RAYON_NUM_THREADS", t.max(1).to_string()) };
@@ -262,7 +262,7 @@ fn apply_overrides(cfg: &mut PoseConfig, a: &TrainArgs) {
 
 /// Keeps the CSV rows up to `iteration` (after a resume, the rows written past the last
 /// checkpoint are dropped so the log matches an uninterrupted run) and opens it for append.
-fn open_csv(path: &Path, header: &str, keep_up_to: Option<u64>) -> Result<std::fs::File> {
+pub(crate) fn open_csv(path: &Path, header: &str, keep_up_to: Option<u64>) -> Result<std::fs::File> {
     let mut keep = String::new();
     if let (Some(limit), Ok(text)) = (keep_up_to, std::fs::read_to_string(path)) {
         for (i, line) in text.lines().enumerate() {
@@ -299,6 +299,10 @@ pub fn train(args: TrainArgs) -> Result<()> {
         );
         if let Some(it) = args.iterations {
             t.set_iterations(it);
+        }
+        if let Some(lr) = args.learning_rate {
+            eprintln!("learning rate {} from iteration {}", lr, t.iteration());
+            t.set_learning_rate(lr);
         }
         t
     } else {

@@ -10,7 +10,8 @@
 //! - room cases also hold `depth.png` (16-bit, `stored × depth_scale = mm`, 1 normalised unit
 //!   = `unit_mm` mm) and `camera.json` (`cam_K` row-major 9 numbers, `depth_scale`, `width`,
 //!   `height`, `unit_mm`): back-projecting `depth.png` with `cam_K` and dividing by `unit_mm`
-//!   gives the scene in the units of `target.ply` (before voxelising).
+//!   gives the scene in the units of `target.ply` (before voxelising), and `mask.png` (8-bit,
+//!   255 on the visible object), the ground-truth mask for upper-bound runs only.
 //!
 //! Every file is written atomically (temporary file + rename).
 
@@ -132,6 +133,9 @@ pub fn write_room_case(
             .collect(),
     };
     ic_render::io::write_depth_png(dir.join("depth.png"), &metres, depth_scale)?;
+    // The visible object mask, for methods run with the ground-truth mask (an upper bound);
+    // a method under test must not read it otherwise.
+    ic_render::io::write_mask_png(dir.join("mask.png"), &sample.mask_visib)?;
     write_json_atomic(
         &dir.join("camera.json"),
         &json!({"cam_K": k.k_row_major().concat(), "depth_scale": depth_scale, "width": k.width, "height": k.height, "unit_mm": unit_mm}),

@@ -56,7 +56,8 @@ pub use corpus::{
 pub use error::DataError;
 pub use prefetch::{Batches, Prefetcher};
 pub use room::{
-    ROOM_UNIT_MM, RoomSample, RoomSampleConfig, RoomSampleGenerator, mask_bbox, voxelise_scene,
+    ROOM_UNIT_MM, RoomSample, RoomSampleConfig, RoomSampleGenerator, RoomView, mask_bbox,
+    voxelise_scene,
 };
 pub use sample::{
     ObjectSample, ObjectSampleConfig, ObjectSampleGenerator, PAPER_MATCH_THRESHOLD,

@@ -189,6 +189,23 @@ impl RoomSample {
     }
 }
 
+/// A room view without the point clouds: what a segmentation network trains on.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RoomView {
+    pub index: u64,
+    pub object_id: String,
+    pub intrinsics: Intrinsics,
+    /// Camera-frame z in normalised units (0 = no return).
+    pub depth: DepthImage,
+    /// The visible object pixels.
+    pub mask_visib: Mask,
+    /// Model→camera, normalised units.
+    pub pose: Pose,
+    pub normalisation: Normalisation,
+    /// The diagonal of the model's bounding box (normalised units).
+    pub model_extent: f64,
+}
+
 /// BOP `[x, y, w, h]` of a mask, `[-1; 4]` when empty.
 pub fn mask_bbox(mask: &Mask) -> [i32; 4] {
     let w = mask.width as usize;
@@ -310,6 +327,51 @@ impl RoomSampleGenerator {
 
     pub fn seed(&self) -> u64 {
         self.seed
+    }
+
+    /// View `index` as a depth map and visible mask only (one render, no voxelising, no
+    /// model points): the draws are those of [`Self::sample_with`], but a view is redrawn
+    /// when fewer than `min_object_voxels` pixels of the object are visible, so for a barely
+    /// visible object the two may pick different scenes.
+    pub fn view_with(&self, renderer: &mut dyn Renderer, index: u64) -> Result<RoomView, DataError> {
+        let cfg = &self.config;
+        let mut rng = sample_rng(self.seed, index);
+        let mut last = 0;
+        for _ in 0..cfg.max_attempts {
+            let object = self.corpus.pick(&mut rng)?;
+            let steps = ((cfg.distance.1 - cfg.distance.0) / cfg.distance_step).floor() as u64;
+            let step = rng.random_range(0..=steps);
+            let scene_seed: u64 = rng.random();
+            let built = self.builder(step)?.build(&object.mesh, scene_seed)?;
+            let rendering = renderer.render(&built.scene, &built.camera)?;
+            let mask_visib = rendering.mask(OBJECT_ID);
+            last = mask_visib.data.iter().filter(|&&m| m).count();
+            if last < cfg.min_object_voxels.max(1) {
+                continue;
+            }
+            return Ok(RoomView {
+                index,
+                object_id: object.id.clone(),
+                intrinsics: cfg.scene.intrinsics,
+                depth: rendering.depth,
+                mask_visib,
+                pose: built.object_to_camera(),
+                normalisation: object.normalisation,
+                model_extent: {
+                    let v = &object.mesh.vertices;
+                    let lo = v.iter().fold(Vec3::splat(f32::INFINITY), |a, p| a.min(*p));
+                    let hi = v.iter().fold(Vec3::splat(f32::NEG_INFINITY), |a, p| a.max(*p));
+                    (hi - lo).length() as f64
+                },
+            });
+        }
+        Err(DataError::Sample {
+            index,
+            message: format!(
+                "the object covered fewer than {} pixels in {} attempts (last: {last})",
+                cfg.min_object_voxels, cfg.max_attempts
+            ),
+        })
     }
 
     /// Sample `index`, rendered with the CPU renderer.

@@ -499,6 +499,9 @@ fn exported_cases_have_the_documented_files_and_ground_truth() {
         Some((160, 120)),
     )
     .unwrap();
+    // mask.png is the visible mask, pixel for pixel.
+    let mask = ic_render::io::read_mask_png(case.join("mask.png"), Some((160, 120))).unwrap();
+    assert_eq!(mask, r.mask_visib);
     // depth.png is in mm; 1 unit = unit_mm mm.
     let unit_m = cam["unit_mm"].as_f64().unwrap() / 1000.0;
     let (u, v) = (

@@ -1,213 +1,267 @@
-//! `incontext demo`: the geometric half of the pipeline on a procedural object.
+//! `incontext demo`: the whole pipeline on a scene it makes itself.
+//!
+//! A procedural object (`ic_geometry::shapes`, through an `ic_data` procedural corpus) is put
+//! in the room of the test scenes (`ic_data::RoomSampleGenerator`: 640×480, fx = fy = 525, 1
+//! unit = 1 dm, camera 32 cm – 1 m from the object on the paper's view sphere) and rendered.
+//! The demo writes what a user would have — the mesh in mm (`model.ply`), the depth map
+//! (`depth.png`, 16-bit mm) and the camera (`camera.json`) — plus the ground truth
+//! (`gt_pose.json`, `mask_gt.png`), then runs exactly `incontext register` on those files
+//! (segmentation, pose network, ICP) and compares the result with the ground truth.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::{Context, anyhow};
-use ic_geometry::glam::DVec3;
-use ic_geometry::io::{PlyEncoding, write_ply};
-use ic_geometry::sampling::{VisibleSurfaceOptions, sample_visible_surface};
-use ic_geometry::{
-    IcpMethod, IcpOptions, IcpTarget, Intrinsics, PointCloud, Pose, ViewSphere, random_subsample,
-    voxel_downsample,
-};
-use ic_render::{Camera, CpuRenderer, Renderer, Scene};
-use rand::{Rng, SeedableRng};
-use serde::Serialize;
+use ic_data::{Corpus, CorpusOptions, ROOM_UNIT_MM, RoomSampleConfig, RoomSampleGenerator, Split};
+use ic_geometry::io::{PlyEncoding, write_mesh_ply};
+use ic_geometry::{Image, Mesh, Normalisation};
+use ic_render::CpuRenderer;
+use serde_json::{Value, json};
 
-use crate::CliError;
+use crate::error::{CliError, Result, ResultExt};
+use crate::inputs;
+use crate::register::{self, NetworkArgs, RegisterArgs, bop_pose_json, ms, pose_json};
 
-/// Settings of the demo (printed with every run).
-#[derive(clap::Args, Debug, Serialize)]
+/// Flags of `incontext demo`.
+#[derive(clap::Args, Debug, Clone, serde::Serialize)]
 pub struct DemoArgs {
-    /// Seed of every random choice (object, viewpoint, sampling, perturbation).
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// Folder for the PLY clouds and the depth image; nothing is written without it.
+    /// Output folder: model.ply, depth.png, camera.json, gt_pose.json, mask_gt.png (the inputs
+    /// and the truth), pose.json, overlay.png, aligned.ply (the result).
+    #[arg(long, default_value = "incontext-demo")]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub networks: NetworkArgs,
+    /// Use the rendered ground-truth mask instead of the segmentation network.
     #[arg(long)]
-    pub out: Option<PathBuf>,
-    /// Rotation of the stand-in initial estimate away from the truth, degrees.
-    #[arg(long, default_value_t = 10.0)]
-    pub init_rotation_deg: f64,
-    /// Translation of the stand-in initial estimate away from the truth, normalised units.
-    #[arg(long, default_value_t = 0.05)]
-    pub init_translation: f64,
+    pub gt_mask: bool,
 }
 
-/// The paper's sizes: M model points (the demo's ICP uses 4·M, a denser model), N observed
-/// points, voxel 0.05·√2/2.
-const MODEL_POINTS: usize = 1024;
-const OBSERVED_POINTS: usize = 768;
-const VOXEL: f32 = 0.05 * std::f32::consts::SQRT_2 / 2.0;
-/// Camera distance (normalised units) at which a [-1, 1] object fills a 60° view.
-const CAMERA_DISTANCE: f64 = 2.5;
-
-#[derive(Serialize)]
-struct Report {
-    seed: u64,
-    object_triangles: usize,
-    observed_points_after_voxelising: usize,
-    initial_rotation_error_deg: f64,
-    initial_translation_error: f64,
-    rotation_error_deg: f64,
-    translation_error: f64,
-    icp_fitness: f64,
-    icp_inlier_rmse: f64,
-    icp_iterations: usize,
-    timings_ms: Timings,
-}
-
-#[derive(Serialize, Default)]
-struct Timings {
-    object: f64,
-    model_points: f64,
-    render: f64,
-    observed_points: f64,
-    icp: f64,
-}
-
-pub fn run(args: &DemoArgs) -> Result<(), CliError> {
-    tracing::info!(config = %serde_json::to_string(args).unwrap_or_default(), "incontext demo");
-    if !(args.init_rotation_deg.is_finite() && args.init_translation.is_finite()) {
-        return Err(CliError::Input(anyhow!(
-            "--init-rotation-deg and --init-translation must be finite"
+pub fn run(args: &DemoArgs, seed: u64) -> Result<Value> {
+    let clock = Instant::now();
+    if !args.gt_mask && args.networks.seg_model.is_none() && !crate::models::SEG.available() {
+        return Err(CliError::input(format!(
+            "the segmentation model models/{} is not built into this binary and {} does not exist: \
+             pass --seg-model FILE, or run the demo with --gt-mask (the rendered object mask)",
+            crate::models::SEG.file,
+            crate::models::SEG.workspace_path().display()
         )));
     }
-    let internal = |e: anyhow::Error| CliError::Internal(e);
-    let mut t = Timings::default();
-    let clock = Instant::now();
+    tracing::info!(seed, config = %serde_json::to_string(args).unwrap_or_default(), "incontext demo");
 
-    let mut object = ic_geometry::shapes::random_object(args.seed);
-    object
-        .normalise()
-        .context("normalising the procedural object")
-        .map_err(internal)?;
-    t.object = ms(clock);
-
-    let clock = Instant::now();
-    let model = sample_visible_surface(
-        &object,
-        4 * MODEL_POINTS,
-        args.seed,
-        VisibleSurfaceOptions::default(),
-    )
-    .context("sampling model points")
-    .map_err(internal)?;
-    t.model_points = ms(clock);
-
-    // The true pose: the object at the origin, the camera on the paper's view sphere.
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed ^ 0x5eed);
-    let viewpoint = ViewSphere::paper(CAMERA_DISTANCE).sample(&mut rng);
-    let truth = viewpoint
-        .camera_pose(DVec3::ZERO)
-        .map_err(|e| internal(e.into()))?;
-    tracing::info!(?viewpoint, "camera");
-
-    let clock = Instant::now();
-    let intrinsics = Intrinsics::from_fov_y(320, 240, 60.0).map_err(|e| internal(e.into()))?;
-    let scene = Scene::single(Arc::new(object.clone()), Pose::IDENTITY, 1);
-    let view = CpuRenderer::new()
-        .render(&scene, &Camera::new(intrinsics, truth))
-        .map_err(|e| internal(e.into()))?;
-    t.render = ms(clock);
-
-    let clock = Instant::now();
-    let back_projected = intrinsics
-        .back_project_depth(&view.depth, None)
-        .map_err(|e| internal(e.into()))?;
-    let voxelised = voxel_downsample(&PointCloud::from_points(back_projected), VOXEL)
-        .map_err(|e| internal(e.into()))?;
-    if voxelised.len() < 3 {
-        return Err(internal(anyhow!(
-            "the object covers too few pixels ({} points)",
-            voxelised.len()
-        )));
-    }
-    let observed =
-        random_subsample(&voxelised, OBSERVED_POINTS, &mut rng).map_err(|e| internal(e.into()))?;
-    t.observed_points = ms(clock);
-
-    // Stand-in for the network's one-shot estimate (issue 5): the truth, perturbed.
-    let axis = DVec3::new(
-        rng.random_range(-1.0..1.0),
-        rng.random_range(-1.0..1.0),
-        rng.random_range(-1.0..1.0),
-    );
-    let shift = DVec3::new(
-        rng.random_range(-1.0..1.0),
-        rng.random_range(-1.0..1.0),
-        rng.random_range(-1.0..1.0),
-    );
-    // Rotate about the object's centre and shift, in the camera frame.
-    let initial = Pose::new(
-        Pose::from_axis_angle(axis, args.init_rotation_deg.to_radians(), DVec3::ZERO).rotation
-            * truth.rotation,
-        truth.translation + shift.normalize_or_zero() * args.init_translation,
-    );
-
-    let clock = Instant::now();
-    // The view shows one side of the object, the model points cover all of it: every observed
-    // point has a model counterpart but not the reverse, so ICP registers the observed points
-    // onto the model (point-to-plane, the model's face normals) and the result is inverted.
-    let model_normals = model.normals.as_deref();
-    let target = IcpTarget::new(&model.points, model_normals).map_err(|e| internal(e.into()))?;
-    let options = IcpOptions {
-        method: IcpMethod::PointToPlane,
-        max_correspondence_distance: 0.2,
-        max_iterations: 50,
-        ..Default::default()
+    // The scene: one procedural object of the test stream, in the room.
+    let options = CorpusOptions {
+        // The corpus's cached model points are not used here (register samples its own).
+        model_points: 16,
+        ..CorpusOptions::default()
     };
-    let result = target
-        .register(&observed.points, &initial.inverse(), &options)
-        .map_err(|e| internal(e.into()))?;
-    let estimate = result.pose.inverse();
-    t.icp = ms(clock);
-
-    let report = Report {
-        seed: args.seed,
-        object_triangles: object.triangles.len(),
-        observed_points_after_voxelising: voxelised.len(),
-        initial_rotation_error_deg: initial.rotation_angle_to(&truth).to_degrees(),
-        initial_translation_error: initial.translation.distance(truth.translation),
-        rotation_error_deg: estimate.rotation_angle_to(&truth).to_degrees(),
-        translation_error: estimate.translation.distance(truth.translation),
-        icp_fitness: result.fitness,
-        icp_inlier_rmse: result.inlier_rmse,
-        icp_iterations: result.iterations,
-        timings_ms: t,
-    };
-    println!(
-        "{}",
-        serde_json::to_string_pretty(&report).map_err(|e| internal(e.into()))?
+    let corpus = Arc::new(
+        Corpus::procedural(1, Split::Test, seed, options).internal_err("building the object")?,
     );
+    let generator = RoomSampleGenerator::new(corpus.clone(), RoomSampleConfig::default(), seed)
+        .internal_err("setting up the room")?;
+    let view = generator
+        .view_with(&mut CpuRenderer::new(), 0)
+        .internal_err("rendering the scene")?;
+    let object = corpus
+        .position(&view.object_id)
+        .map(|i| corpus.object(i))
+        .ok_or_else(|| CliError::internal("the rendered object is not in the corpus"))?
+        .internal_err("loading the object")?;
+    let scene_seconds = clock.elapsed().as_secs_f64();
 
-    if let Some(dir) = &args.out {
-        std::fs::create_dir_all(dir)
-            .with_context(|| format!("creating {}", dir.display()))
-            .map_err(CliError::Input)?;
-        let mut scene_cloud = observed.clone();
-        scene_cloud.colors = Some(vec![[160, 160, 160]; scene_cloud.len()]);
-        let aligned = PointCloud {
-            points: estimate.apply_all(&model.points),
-            normals: None,
-            colors: Some(vec![[230, 60, 40]; model.len()]),
-        };
-        scene_cloud.normals = None;
-        scene_cloud.extend(&aligned);
-        write_ply(
-            dir.join("aligned.ply"),
-            &scene_cloud,
-            PlyEncoding::BinaryLittleEndian,
-        )
-        .map_err(|e| CliError::Input(e.into()))?;
-        ic_render::write_debug_png(dir.join("depth.png"), &view.depth, Some(&view.mask(1)))
-            .map_err(|e| CliError::Input(e.into()))?;
-        tracing::info!(dir = %dir.display(), "wrote aligned.ply (observed grey, aligned model red) and depth.png");
-    }
-    Ok(())
+    // The files a user would have, in millimetres.
+    let t = Instant::now();
+    let out = &args.out;
+    inputs::create_dir(out)?;
+    let unit = ROOM_UNIT_MM;
+    let files = DemoFiles::new(out);
+    let mesh_mm = Mesh {
+        vertices: object
+            .mesh
+            .vertices
+            .iter()
+            .map(|v| *v * unit as f32)
+            .collect(),
+        triangles: object.mesh.triangles.clone(),
+    };
+    write_mesh_ply(&files.model, &mesh_mm, PlyEncoding::BinaryLittleEndian)?;
+    let k = view.intrinsics;
+    let metres = Image {
+        width: view.depth.width,
+        height: view.depth.height,
+        data: view
+            .depth
+            .data
+            .iter()
+            .map(|&z| (z as f64 * unit / 1000.0) as f32)
+            .collect(),
+    };
+    ic_render::io::write_depth_png(&files.depth, &metres, 1.0)?;
+    inputs::write_json(
+        &files.camera,
+        &json!({"cam_K": k.k_row_major().concat(), "depth_scale": 1.0, "width": k.width, "height": k.height}),
+    )?;
+    ic_render::io::write_mask_png(&files.mask, &view.mask_visib)?;
+    // The truth in mm: the mesh file is the normalised mesh scaled by `unit`.
+    let to_mm = Normalisation {
+        centre: ic_geometry::glam::DVec3::ZERO,
+        scale: unit,
+    };
+    let truth_mm = to_mm.pose_to_original(&view.pose);
+    let mut gt = pose_json(&truth_mm);
+    gt["bop"] = bop_pose_json(&truth_mm, 1.0);
+    gt["units"] = json!("mm, camera frame");
+    gt["object_id"] = json!(view.object_id);
+    inputs::write_json(&files.gt_pose, &gt)?;
+    let files_seconds = t.elapsed().as_secs_f64();
+
+    // Exactly `incontext register` on those files.
+    let rargs = RegisterArgs {
+        model: files.model.clone(),
+        depth: files.depth.clone(),
+        camera: files.camera.clone(),
+        mask: args.gt_mask.then(|| files.mask.clone()),
+        networks: args.networks.clone(),
+        model_unit_mm: 1.0,
+        out: Some(files.pose.clone()),
+        overlay: Some(files.overlay.clone()),
+        ply: Some(files.ply.clone()),
+    };
+    let outcome = register::register_files(&rargs, seed)?;
+    let r = &outcome.registration;
+
+    let est = r.pose;
+    let one_shot = outcome
+        .object
+        .normalisation
+        .pose_to_original(&r.one_shot_normalised);
+    let points_mm: Vec<_> = outcome
+        .object
+        .points
+        .iter()
+        .map(|p| {
+            outcome
+                .object
+                .normalisation
+                .to_original(p.as_dvec3())
+                .as_vec3()
+        })
+        .collect();
+    let diameter_mm = ic_eval::diameter(&points_mm[..points_mm.len().min(1024)]);
+    let add_s = ic_eval::add_s(&est, &truth_mm, &points_mm)?;
+    let errors = json!({
+        "rotation_deg": ic_eval::rotation_error_deg(&est, &truth_mm),
+        "translation_mm": ic_eval::translation_error(&est, &truth_mm),
+        "translation_normalised": ic_eval::translation_error(&est, &truth_mm) / unit,
+        "add_s_mm": add_s,
+        "add_s_over_diameter": add_s / diameter_mm,
+        "one_shot_rotation_deg": ic_eval::rotation_error_deg(&one_shot, &truth_mm),
+        "one_shot_translation_mm": ic_eval::translation_error(&one_shot, &truth_mm),
+    });
+    let pixels = view.mask_visib.data.iter().filter(|&&m| m).count();
+    let mut timings = outcome.report["timings_ms"].clone();
+    timings["scene"] = json!(ms(scene_seconds));
+    timings["write_inputs"] = json!(ms(files_seconds));
+    timings["demo_total"] = json!(ms(clock.elapsed().as_secs_f64()));
+    Ok(json!({
+        "command": "demo",
+        "seed": seed,
+        "object": {"id": view.object_id, "triangles": mesh_mm.triangles.len(), "diameter_mm": diameter_mm},
+        "scene": {
+            "width": k.width, "height": k.height,
+            "camera_distance_mm": view.pose.translation.length() * unit,
+            "object_pixels": pixels,
+        },
+        "segmentation": if args.gt_mask { "ground-truth mask (--gt-mask)" } else { "network" },
+        "errors": errors,
+        "pose": outcome.report["pose"],
+        "truth": pose_json(&truth_mm),
+        "confidence": r.confidence,
+        "details": outcome.report["details"],
+        "config": outcome.report["config"],
+        "timings_ms": timings,
+        "files": files.json(),
+    }))
 }
 
-fn ms(since: Instant) -> f64 {
-    since.elapsed().as_secs_f64() * 1e3
+/// The files the demo writes.
+struct DemoFiles {
+    model: PathBuf,
+    depth: PathBuf,
+    camera: PathBuf,
+    mask: PathBuf,
+    gt_pose: PathBuf,
+    pose: PathBuf,
+    overlay: PathBuf,
+    ply: PathBuf,
+}
+
+impl DemoFiles {
+    fn new(out: &Path) -> Self {
+        DemoFiles {
+            model: out.join("model.ply"),
+            depth: out.join("depth.png"),
+            camera: out.join("camera.json"),
+            mask: out.join("mask_gt.png"),
+            gt_pose: out.join("gt_pose.json"),
+            pose: out.join("pose.json"),
+            overlay: out.join("overlay.png"),
+            ply: out.join("aligned.ply"),
+        }
+    }
+
+    fn json(&self) -> Value {
+        json!({
+            "model": self.model, "depth": self.depth, "camera": self.camera, "mask_gt": self.mask,
+            "gt_pose": self.gt_pose, "pose": self.pose, "overlay": self.overlay, "aligned_ply": self.ply,
+        })
+    }
+}
+
+/// Human-readable lines of a demo report.
+pub fn summary_text(report: &Value) -> String {
+    let e = &report["errors"];
+    let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
+    let mut s = format!(
+        "demo seed {}: object {} ({} triangles) at {:.0} mm, {} object pixels, segmentation: {}\n",
+        report["seed"],
+        report["object"]["id"].as_str().unwrap_or("?"),
+        report["object"]["triangles"],
+        f(&report["scene"]["camera_distance_mm"]),
+        report["scene"]["object_pixels"],
+        report["segmentation"].as_str().unwrap_or("?"),
+    );
+    s.push_str(&format!(
+        "errors: rotation {:.2}° (one-shot {:.2}°), translation {:.1} mm ({:.4} normalised), ADD-S {:.1} mm = {:.3} of the diameter; confidence {:.3}\n",
+        f(&e["rotation_deg"]),
+        f(&e["one_shot_rotation_deg"]),
+        f(&e["translation_mm"]),
+        f(&e["translation_normalised"]),
+        f(&e["add_s_mm"]),
+        f(&e["add_s_over_diameter"]),
+        f(&report["confidence"]),
+    ));
+    let t = &report["timings_ms"];
+    s.push_str(&format!(
+        "timings (ms): scene {:.0}, write inputs {:.0}, load {:.0}, networks {:.0}, model points {:.0}, segmentation {:.0} + {:.0}, observed points {:.0}, pose network {:.0}, ICP {:.0}, registration {:.0}, outputs {:.0}, total {:.0}\n",
+        f(&t["scene"]),
+        f(&t["write_inputs"]),
+        f(&t["load_inputs"]),
+        f(&t["load_networks"]),
+        f(&t["model_points"]),
+        f(&t["segmentation_network"]),
+        f(&t["segmentation_post"]),
+        f(&t["observed_points"]),
+        f(&t["pose_network"]),
+        f(&t["icp"]),
+        f(&t["registration"]),
+        f(&t["outputs"]),
+        f(&t["demo_total"]),
+    ));
+    s.push_str(&format!(
+        "wrote {} (overlay: {})\n",
+        report["files"]["pose"].as_str().unwrap_or("?"),
+        report["files"]["overlay"].as_str().unwrap_or("?"),
+    ));
+    s
 }

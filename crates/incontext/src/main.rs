@@ -1,46 +1,21 @@
-//! `incontext` — the command line.
+//! `incontext` — the command line (see `incontext --help`).
 //!
-//! For now it has one command, `demo`, a seeded end-to-end run of the geometric half of the
-//! pipeline (render → back-project → voxelise → sample → ICP refinement → errors). Issue 8 adds
-//! `register`, `eval` and `render`, and the network stages replace the demo's stand-in for the
-//! one-shot estimate.
-//!
-//! Exit codes: 0 ok, 2 bad input (flags, files), 1 internal error.
+//! Exit codes: 0 ok, 2 bad input (flags, files), 3 object not found, 1 internal error.
 
-mod demo;
-
+use std::io::Write;
 use std::process::ExitCode;
 
-use clap::{Parser, Subcommand};
-
-#[derive(Parser)]
-#[command(
-    name = "incontext",
-    version,
-    about = "6D pose of a known object in one depth map"
-)]
-struct Cli {
-    /// More log output (-v debug, -vv trace).
-    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
-    verbose: u8,
-    /// Only errors.
-    #[arg(short, long, global = true)]
-    quiet: bool,
-    #[command(subcommand)]
-    command: Command,
-}
-
-#[derive(Subcommand)]
-enum Command {
-    /// Seeded demo that needs no files: a procedural object seen from one of the paper's
-    /// viewpoints, its pose refined by ICP from a perturbed start; prints errors and timings.
-    ///
-    /// Example: incontext demo --seed 7 --out demo-out
-    Demo(demo::DemoArgs),
-}
+use clap::Parser;
+use incontext::cli::{Cli, run};
+use serde_json::json;
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if let Some(t) = cli.threads {
+        // SAFETY: first thing in main, before any other thread exists; rayon and candle read
+        // it when they start their pools.
+        unsafe { std::env::set_var("RAYON_NUM_THREADS", t.max(1).to_string()) };
+    }
     let level = match (cli.quiet, cli.verbose) {
         (true, _) => "error",
         (false, 0) => "info",
@@ -56,40 +31,44 @@ fn main() -> ExitCode {
         .with_target(false)
         .without_time()
         .init();
-    let result = match cli.command {
-        Command::Demo(args) => demo::run(&args),
-    };
+    // A panic is a bug: report it as an internal error (exit 1), in JSON when asked.
+    let json_mode = cli.json;
+    std::panic::set_hook(Box::new(move |info| {
+        let message = format!("internal error (a bug, please report it): {info}");
+        if json_mode {
+            println!(
+                "{}",
+                json!({"error": message, "kind": "internal", "exit_code": 1})
+            );
+        }
+        eprintln!("error: {message}");
+    }));
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run(&cli)));
     match result {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e:#}");
+        Ok(Ok((report, text))) => {
+            if cli.json {
+                out(&incontext::inputs::pretty_json(&report));
+            } else {
+                out(text.trim_end());
+            }
+            ExitCode::SUCCESS
+        }
+        Ok(Err(e)) => {
+            if cli.json {
+                out(
+                    &json!({"error": e.message, "kind": e.kind, "exit_code": e.exit_code()})
+                        .to_string(),
+                );
+            }
+            let _ = writeln!(std::io::stderr(), "error: {e}");
             ExitCode::from(e.exit_code())
         }
+        Err(_) => ExitCode::from(1),
     }
 }
 
-/// An error with the exit code it maps to.
-#[derive(Debug)]
-pub enum CliError {
-    /// Bad input: flags, files, values (exit 2).
-    Input(anyhow::Error),
-    /// Anything else (exit 1).
-    Internal(anyhow::Error),
-}
-
-impl CliError {
-    fn exit_code(&self) -> u8 {
-        match self {
-            CliError::Input(_) => 2,
-            CliError::Internal(_) => 1,
-        }
-    }
-}
-
-impl std::fmt::Display for CliError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            CliError::Input(e) | CliError::Internal(e) => write!(f, "{e:#}"),
-        }
-    }
+/// Writes a line to stdout; a closed pipe (`| head`) is not an error worth a panic.
+fn out(text: &str) {
+    let mut stdout = std::io::stdout().lock();
+    let _ = writeln!(stdout, "{text}").and_then(|_| stdout.flush());
 }

@@ -7,10 +7,10 @@
 //! which inference ignores.
 
 use std::collections::HashMap;
-use std::io::{Read, Write};
 use std::path::Path;
 
 use candle_core::Tensor;
+use ic_nn::CheckpointError;
 use serde::{Deserialize, Serialize};
 
 use crate::config::PoseConfig;
@@ -37,57 +37,27 @@ fn ck_err(path: &Path, message: impl Into<String>) -> PoseError {
     }
 }
 
+impl From<CheckpointError> for PoseError {
+    fn from(e: CheckpointError) -> Self {
+        match e {
+            CheckpointError::Io { path, source } => PoseError::Io { path, source },
+            CheckpointError::Format { path, message } => PoseError::Checkpoint { path, message },
+        }
+    }
+}
+
 /// Writes `tensors` with `metadata` to `path` atomically.
 pub fn save(
     path: &Path,
     tensors: &[(String, Tensor)],
     metadata: HashMap<String, String>,
 ) -> Result<()> {
-    let mut sorted: Vec<(&str, &Tensor)> = tensors.iter().map(|(k, t)| (k.as_str(), t)).collect();
-    sorted.sort_by(|a, b| a.0.cmp(b.0));
-    let bytes = safetensors::serialize(sorted, Some(metadata))
-        .map_err(|e| ck_err(path, format!("serialising: {e}")))?;
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|source| PoseError::Io {
-            path: dir.to_path_buf(),
-            source,
-        })?;
-    }
-    ic_geometry::io::write_atomic_with(path, |w| w.write_all(&bytes), |e| e).map_err(|source| {
-        PoseError::Io {
-            path: path.to_path_buf(),
-            source,
-        }
-    })
+    Ok(ic_nn::checkpoint::save(path, tensors, metadata)?)
 }
 
 /// The metadata of a safetensors file (reads only its header).
 pub fn read_metadata(path: &Path) -> Result<HashMap<String, String>> {
-    let mut f = std::fs::File::open(path).map_err(|source| PoseError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let mut len = [0u8; 8];
-    f.read_exact(&mut len)
-        .map_err(|_| ck_err(path, "not a safetensors file (too short)"))?;
-    let len = u64::from_le_bytes(len);
-    if len > 100_000_000 {
-        return Err(ck_err(path, "not a safetensors file (header size)"));
-    }
-    let mut header = vec![0u8; len as usize];
-    f.read_exact(&mut header)
-        .map_err(|_| ck_err(path, "truncated safetensors header"))?;
-    let json: serde_json::Value = serde_json::from_slice(&header)
-        .map_err(|e| ck_err(path, format!("bad safetensors header: {e}")))?;
-    let mut out = HashMap::new();
-    if let Some(meta) = json.get("__metadata__").and_then(|m| m.as_object()) {
-        for (k, v) in meta {
-            if let Some(s) = v.as_str() {
-                out.insert(k.clone(), s.to_string());
-            }
-        }
-    }
-    Ok(out)
+    Ok(ic_nn::checkpoint::read_metadata(path)?)
 }
 
 /// The configuration embedded in a checkpoint.

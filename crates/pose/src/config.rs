@@ -49,6 +49,27 @@ pub struct OtConfig {
     pub lambda: f32,
     /// Sinkhorn iterations.
     pub iterations: usize,
+    /// How the NLL over M̄ weighs matched entries against outlier-bin entries.
+    #[serde(default)]
+    pub loss: OtLoss,
+}
+
+/// Weighting of the OT head's loss.
+///
+/// The paper's normalised NLL over M̄ (`Paper`) sums the matched and the bin entries with one
+/// weight. With mutual-nearest-neighbour ground truth about 36 % of the observed points of an
+/// object-alone view match, so the bin entries outnumber the matched ones about 5 to 1 and a
+/// network that sends all mass to the bins reaches a low loss: measured here, the `cpu` preset
+/// collapsed into the bins within 400 iterations (correspondence accuracy 0.000, validation
+/// median 164°). `Balanced` (the default) averages the matched entries and the bin entries
+/// separately and adds the two means, so both halves of M̄ carry equal weight whatever the
+/// inlier rate.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OtLoss {
+    Paper,
+    #[default]
+    Balanced,
 }
 
 impl Default for OtConfig {
@@ -57,6 +78,7 @@ impl Default for OtConfig {
             alpha: 0.01,
             lambda: 0.5,
             iterations: 50,
+            loss: OtLoss::Balanced,
         }
     }
 }

@@ -17,7 +17,8 @@ use candle_core::{D, Result, Tensor};
 use candle_nn::VarBuilder;
 
 use crate::config::NetConfig;
-use crate::layers::{BatchNorm1, Dense};
+use crate::layers::Dense;
+use ic_nn::norm::BatchNorm1;
 
 /// One EdgeConv: `LeakyReLU(BN(max_{j∈N(i)} (Wₙ·x_j + W_c·x_i)))`.
 ///

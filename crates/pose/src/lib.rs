@@ -31,7 +31,6 @@
 //! k-NN graph is computed in plain Rust ([`knn`]); DGCNN runs channel-first with the
 //! per-point products before the neighbour gather.
 
-pub mod adam;
 pub mod checkpoint;
 pub mod config;
 pub mod dgcnn;
@@ -40,16 +39,15 @@ pub mod estimator;
 pub mod knn;
 pub mod layers;
 pub mod network;
-mod params;
 pub mod recover;
 pub mod sinkhorn;
 pub mod train;
 pub mod transformer;
 
-pub use config::{Head, NetConfig, OtConfig, PoseConfig, TrainConfig};
+pub use config::{Head, NetConfig, OtConfig, OtLoss, PoseConfig, TrainConfig};
 pub use error::{PoseError, Result};
 pub use estimator::{PoseEstimate, PoseEstimator};
 pub use network::{HeadOutput, Match, PairBatch, PoseNet, correspondence_accuracy, nll_loss};
-pub use params::seeded_var_builder;
+pub use ic_nn::{adam, seeded_var_builder};
 pub use recover::{Recovered, RecoveryOptions, Refine, recover_pose};
 pub use train::{StepStats, Trainer};

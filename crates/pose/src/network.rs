@@ -9,7 +9,7 @@ use candle_nn::VarBuilder;
 use glam::Vec3;
 use ic_data::Assignment;
 
-use crate::config::{Head, NetConfig};
+use crate::config::{Head, NetConfig, OtLoss};
 use crate::dgcnn::Dgcnn;
 use crate::layers::log_softmax_last;
 use crate::transformer::Transformer;
@@ -112,6 +112,8 @@ pub struct HeadOutput {
     pub log_p: Tensor,
     pub model_points: usize,
     pub observed_points: usize,
+    /// Weighting of the OT loss (ignored by the softmax head).
+    pub loss: OtLoss,
 }
 
 /// For one observed point: its most probable model point.
@@ -254,6 +256,7 @@ impl PoseNet {
             log_p,
             model_points: m,
             observed_points: n,
+            loss: self.cfg.ot.loss,
         })
     }
 }
@@ -262,8 +265,10 @@ impl PoseNet {
 ///
 /// Softmax head: over the matched pairs only, `−Σ log P_ji M_ij / Σ M_ij` (a pair without a
 /// match contributes nothing). OT head: over M̄ including the bins — an unmatched observed
-/// point j counts `log P̄[M, j]`, an unmatched model point i counts `log P̄[i, N]`. A batch
-/// with nothing to count gives a zero loss (with zero, finite gradients).
+/// point j counts `log P̄[M, j]`, an unmatched model point i counts `log P̄[i, N]`; with
+/// [`OtLoss::Balanced`] (the default) the matched entries and the bin entries are averaged
+/// separately and the two means added. A batch with nothing to count gives a zero loss (with
+/// zero, finite gradients).
 pub fn nll_loss(out: &HeadOutput, assignments: &[&Assignment]) -> Result<Tensor> {
     let (m, n) = (out.model_points, out.observed_points);
     let b = out.log_p.dims()[0];
@@ -273,8 +278,9 @@ pub fn nll_loss(out: &HeadOutput, assignments: &[&Assignment]) -> Result<Tensor>
             assignments.len()
         )));
     }
+    // Each counted entry of log P (flat index) and its group: 0 = matched pair, 1 = outlier bin.
     let mut idx: Vec<u32> = Vec::new();
-    let mut w: Vec<f32> = Vec::new();
+    let mut group: Vec<u8> = Vec::new();
     let mut per_pair: Vec<(usize, usize)> = Vec::with_capacity(b); // (start, count)
     for (bi, a) in assignments.iter().enumerate() {
         if a.model_count != m || a.observed_count != n || a.observed_to_model.len() != n {
@@ -290,6 +296,7 @@ pub fn nll_loss(out: &HeadOutput, assignments: &[&Assignment]) -> Result<Tensor>
                 for (j, i) in a.observed_to_model.iter().enumerate() {
                     if let Some(i) = i {
                         idx.push((base + j * m + *i as usize) as u32);
+                        group.push(0);
                     }
                 }
             }
@@ -300,15 +307,20 @@ pub fn nll_loss(out: &HeadOutput, assignments: &[&Assignment]) -> Result<Tensor>
                     let row = match i {
                         Some(i) => {
                             model_matched[*i as usize] = true;
+                            group.push(0);
                             *i as usize
                         }
-                        None => m,
+                        None => {
+                            group.push(1);
+                            m
+                        }
                     };
                     idx.push((base + row * (n + 1) + j) as u32);
                 }
                 for (i, matched) in model_matched.iter().enumerate() {
                     if !matched {
                         idx.push((base + i * (n + 1) + n) as u32);
+                        group.push(1);
                     }
                 }
             }
@@ -320,13 +332,22 @@ pub fn nll_loss(out: &HeadOutput, assignments: &[&Assignment]) -> Result<Tensor>
     if counted == 0 {
         return Ok((out.log_p.sum_all()? * 0.0)?);
     }
-    for (_, count) in &per_pair {
-        let weight = if *count > 0 {
-            1.0 / (*count as f32 * counted as f32)
+    let balanced = out.head == Head::Ot && out.loss == OtLoss::Balanced;
+    let mut w: Vec<f32> = Vec::with_capacity(idx.len());
+    for (start, count) in &per_pair {
+        let groups = &group[*start..start + count];
+        if balanced {
+            let matched = groups.iter().filter(|g| **g == 0).count();
+            let bins = count - matched;
+            let present = (matched > 0) as usize + (bins > 0) as usize;
+            for g in groups {
+                let in_group = if *g == 0 { matched } else { bins };
+                w.push(1.0 / (in_group as f32 * present as f32 * counted as f32));
+            }
         } else {
-            0.0
-        };
-        w.extend(std::iter::repeat_n(weight, *count));
+            let weight = 1.0 / (*count as f32 * counted as f32);
+            w.extend(std::iter::repeat_n(weight, *count));
+        }
     }
     let k = idx.len();
     let idx = Tensor::from_vec(idx, k, device)?;

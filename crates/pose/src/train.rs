@@ -10,12 +10,12 @@ use candle_nn::VarMap;
 use glam::Vec3;
 use ic_data::{Assignment, ObjectSample};
 
-use crate::adam::Adam;
+use ic_nn::adam::Adam;
 use crate::checkpoint::{self, CONFIG_KEY, STATE_KEY, TrainState};
 use crate::config::PoseConfig;
 use crate::estimator::PoseEstimator;
 use crate::network::{PairBatch, PoseNet, correspondence_accuracy, nll_loss};
-use crate::params::seeded_var_builder;
+use ic_nn::seeded_var_builder;
 use crate::{PoseError, Result};
 
 /// What one step measured.
@@ -72,7 +72,7 @@ impl Trainer {
                 path: path.to_path_buf(),
                 message: e.to_string(),
             })?;
-        t.load_weights(&tensors, path)?;
+        ic_nn::checkpoint::load_into_varmap(&t.varmap, &tensors, path)?;
         t.adam
             .load_state(&tensors, state.adam_step)
             .map_err(|e| PoseError::Checkpoint {
@@ -83,26 +83,15 @@ impl Trainer {
         Ok(t)
     }
 
-    fn load_weights(&mut self, tensors: &HashMap<String, Tensor>, path: &Path) -> Result<()> {
-        let data = self.varmap.data().lock().unwrap();
-        for (name, var) in data.iter() {
-            let t = tensors.get(name).ok_or_else(|| PoseError::Checkpoint {
-                path: path.to_path_buf(),
-                message: format!("missing tensor {name}"),
-            })?;
-            if t.shape() != var.shape() {
-                return Err(PoseError::Checkpoint {
-                    path: path.to_path_buf(),
-                    message: format!("{name}: shape {:?}, expected {:?}", t.shape(), var.shape()),
-                });
-            }
-            var.set(t)?;
-        }
-        Ok(())
-    }
-
     pub fn config(&self) -> &PoseConfig {
         &self.config
+    }
+
+    /// Changes the learning rate from the next step on (a step schedule across a resume);
+    /// the configuration saved with later checkpoints records the new rate.
+    pub fn set_learning_rate(&mut self, learning_rate: f64) {
+        self.config.train.learning_rate = learning_rate;
+        self.adam.learning_rate = learning_rate;
     }
 
     /// Changes the planned iteration count (e.g. to extend a resumed run).
@@ -188,13 +177,7 @@ impl Trainer {
     }
 
     fn weights(&self) -> Vec<(String, Tensor)> {
-        self.varmap
-            .data()
-            .lock()
-            .unwrap()
-            .iter()
-            .map(|(k, v)| (k.clone(), v.as_tensor().detach()))
-            .collect()
+        ic_nn::checkpoint::varmap_tensors(&self.varmap)
     }
 
     /// Saves everything needed to resume exactly (atomically).

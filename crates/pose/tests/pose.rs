@@ -346,3 +346,36 @@ fn perfect_matches_recover_the_pose() {
     assert!((r.pose.translation - p.pose.translation).length() < 1e-4);
     assert_eq!(r.inlier_count, 48);
 }
+
+/// The OT loss on a hand-made log P̄ (M = 2, N = 3): observed 0 ↔ model 1 matched, observed 1
+/// and 2 unmatched, model 0 unmatched.
+#[test]
+fn ot_loss_balanced_averages_matches_and_bins_separately() {
+    // log P̄ is [1, M+1, N+1] = [1, 3, 4]; entry (i, j) = −(1 + 4i + j) so each is distinct.
+    let values: Vec<f32> = (0..12).map(|k| -(1.0 + k as f32)).collect();
+    let log_p = Tensor::from_vec(values, (1, 3, 4), &Device::Cpu).unwrap();
+    let assignment = Assignment {
+        model_count: 2,
+        observed_count: 3,
+        observed_to_model: vec![Some(1), None, None],
+    };
+    let out = |loss| ic_pose::HeadOutput {
+        head: Head::Ot,
+        log_p: log_p.clone(),
+        model_points: 2,
+        observed_points: 3,
+        loss,
+    };
+    let nll = |o: &ic_pose::HeadOutput| {
+        ic_pose::nll_loss(o, &[&assignment])
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap()
+    };
+    // Matched: (1, 0) → 5. Bins: observed 1, 2 in row M = 2: (2, 1) → 10, (2, 2) → 11; model 0
+    // in column N = 3: (0, 3) → 4.
+    let balanced = nll(&out(ic_pose::OtLoss::Balanced));
+    assert!((balanced - (5.0 + (10.0 + 11.0 + 4.0) / 3.0)).abs() < 1e-5, "{balanced}");
+    let paper = nll(&out(ic_pose::OtLoss::Paper));
+    assert!((paper - (5.0 + 10.0 + 11.0 + 4.0) / 4.0).abs() < 1e-5, "{paper}");
+}

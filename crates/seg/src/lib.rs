@@ -1,7 +1,53 @@
-//! `ic_seg` — finds the object in the depth map.
+//! `ic_seg` — finds the object in the depth map, the paper's first module.
 //!
-//! This crate will own the depth-only instance-mask network (a compact candle encoder–decoder
-//! standing in for the paper's YOLACT), its training step, the paper's mask post-processing
-//! (threshold, components, best instance, 3×3 erosion, 1.2-radius crop) and a geometry-only
-//! alternative (RANSAC plane removal + Euclidean clustering). It knows nothing about pose. See
-//! issue 6.
+//! - [`unet::UNet`]: a compact U-Net on normalised depth (two input channels, see
+//!   [`input`]) giving one object logit per pixel; it stands in for the paper's YOLACT, which
+//!   needs ImageNet weights that cannot be fetched here (`docs/ARCHITECTURE.md` says how the
+//!   two differ).
+//! - [`post`]: the paper's post-processing — threshold, 8-connected components scored by
+//!   their mean probability, the best instance, 3×3 erosion, back-projection, the crop to
+//!   1.2 normalised units around the masked points' centre.
+//! - [`Segmenter`]: the inference API, any resolution in, a full-resolution mask out, or a
+//!   typed [`SegError::ObjectNotFound`].
+//! - [`SegTrainer`]: seeded, resumable training on depth maps and masks.
+//! - [`geometric`]: RANSAC plane removal + Euclidean clustering, no network.
+//!
+//! It knows nothing about pose.
+//!
+//! ```
+//! use ic_geometry::{DepthImage, Intrinsics, Mask};
+//! use ic_seg::{SegConfig, SegExample, SegTrainer};
+//! // A tiny network, one step on a synthetic depth map with a square in front of a wall.
+//! let cfg = SegConfig::tiny();
+//! let mut depth = DepthImage::filled(64, 48, 3.0);
+//! let mut mask = Mask::filled(64, 48, false);
+//! for v in 16..32 { for u in 24..40 { depth.data[v * 64 + u] = 2.0; mask.data[v * 64 + u] = true; } }
+//! let example = SegExample::new(&depth, &mask, &cfg)?;
+//! let mut trainer = SegTrainer::new(cfg, 7)?;
+//! let stats = trainer.step(&[example.clone(), example])?;
+//! assert!(stats.loss.is_finite());
+//! let k = Intrinsics::new(60.0, 60.0, 31.5, 23.5, 64, 48)?;
+//! // After one step the object may or may not be found; either answer is typed.
+//! match trainer.segmenter().segment(&depth, &k) {
+//!     Ok(seg) => assert_eq!(seg.mask.width, 64),
+//!     Err(ic_seg::SegError::ObjectNotFound { .. }) => {}
+//!     Err(e) => return Err(e.into()),
+//! }
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+pub mod checkpoint;
+pub mod config;
+mod error;
+pub mod geometric;
+pub mod input;
+pub mod post;
+pub mod segmenter;
+pub mod train;
+pub mod unet;
+
+pub use config::{PostConfig, SegConfig, SegTrainConfig, UNetConfig};
+pub use error::{Result, SegError};
+pub use geometric::{GeometricConfig, GeometricSegmentation, segment_geometric};
+pub use segmenter::{Segmentation, Segmenter};
+pub use train::{SegExample, SegStepStats, SegTrainer, seg_loss};

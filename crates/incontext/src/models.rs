@@ -1,0 +1,214 @@
+//! The shipped networks: embedded in the binary when they existed at build time (see
+//! `build.rs`), else looked up under the workspace's `models/` folder; or any checkpoint given
+//! with `--pose-model` / `--seg-model`.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use ic_pose::{Head, PoseEstimator};
+use ic_seg::Segmenter;
+
+use crate::error::{CliError, Result};
+
+/// One shipped model: its file name under `models/` and, when it existed at build time, its
+/// bytes.
+#[derive(Clone, Copy, Debug)]
+pub struct Shipped {
+    pub file: &'static str,
+    pub bytes: Option<&'static [u8]>,
+}
+
+impl Shipped {
+    /// Where the file lives in the workspace this binary was built from.
+    pub fn workspace_path(&self) -> PathBuf {
+        let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
+        // crates/incontext → the workspace root.
+        let root = manifest.ancestors().nth(2).unwrap_or(manifest);
+        root.join("models").join(self.file)
+    }
+
+    /// Whether this model can be loaded without a flag.
+    pub fn available(&self) -> bool {
+        self.bytes.is_some() || self.workspace_path().is_file()
+    }
+
+    /// "embedded" or the workspace path.
+    pub fn describe(&self) -> String {
+        match self.bytes {
+            Some(_) => format!("models/{} (embedded)", self.file),
+            None => self.workspace_path().display().to_string(),
+        }
+    }
+}
+
+/// The softmax-head pose network (`models/pose-cpu-softmax.safetensors`).
+pub const POSE_SOFTMAX: Shipped = Shipped {
+    file: "pose-cpu-softmax.safetensors",
+    #[cfg(ic_embed_pose_softmax)]
+    bytes: Some(include_bytes!(
+        "../../../models/pose-cpu-softmax.safetensors"
+    )),
+    #[cfg(not(ic_embed_pose_softmax))]
+    bytes: None,
+};
+
+/// The optimal-transport-head pose network (`models/pose-cpu-ot.safetensors`).
+pub const POSE_OT: Shipped = Shipped {
+    file: "pose-cpu-ot.safetensors",
+    #[cfg(ic_embed_pose_ot)]
+    bytes: Some(include_bytes!("../../../models/pose-cpu-ot.safetensors")),
+    #[cfg(not(ic_embed_pose_ot))]
+    bytes: None,
+};
+
+/// The segmentation network (`models/seg-cpu.safetensors`).
+pub const SEG: Shipped = Shipped {
+    file: "seg-cpu.safetensors",
+    #[cfg(ic_embed_seg)]
+    bytes: Some(include_bytes!("../../../models/seg-cpu.safetensors")),
+    #[cfg(not(ic_embed_seg))]
+    bytes: None,
+};
+
+/// The shipped pose network of a head.
+pub fn shipped_pose(head: Head) -> Shipped {
+    match head {
+        Head::Softmax => POSE_SOFTMAX,
+        Head::Ot => POSE_OT,
+    }
+}
+
+/// A file that holds a checkpoint: the user's, the workspace's, or a temporary copy of the
+/// embedded bytes (kept alive as long as the network that memory-maps it).
+pub(crate) enum CheckpointFile {
+    Path(PathBuf),
+    Temp(tempfile::NamedTempFile),
+}
+
+impl CheckpointFile {
+    pub(crate) fn path(&self) -> &Path {
+        match self {
+            CheckpointFile::Path(p) => p,
+            CheckpointFile::Temp(t) => t.path(),
+        }
+    }
+}
+
+fn check_readable(path: &Path, what: &str) -> Result<()> {
+    match std::fs::metadata(path) {
+        Ok(m) if m.is_file() => Ok(()),
+        Ok(_) => Err(CliError::input(format!(
+            "{}: the {what} is not a file",
+            path.display()
+        ))),
+        Err(e) => Err(CliError::input(format!(
+            "{}: cannot read the {what}: {e}",
+            path.display()
+        ))),
+    }
+}
+
+/// The file of `shipped`, or an error saying how to get it.
+fn shipped_file(shipped: &Shipped, what: &str, flag: &str) -> Result<CheckpointFile> {
+    if let Some(bytes) = shipped.bytes {
+        let mut tmp = tempfile::Builder::new()
+            .prefix("incontext-")
+            .suffix(".safetensors")
+            .tempfile()
+            .map_err(|e| {
+                CliError::internal(format!("creating a temporary file for the {what}: {e}"))
+            })?;
+        tmp.write_all(bytes)
+            .and_then(|_| tmp.flush())
+            .map_err(|e| {
+                CliError::internal(format!(
+                    "writing the embedded {what} to a temporary file: {e}"
+                ))
+            })?;
+        return Ok(CheckpointFile::Temp(tmp));
+    }
+    let path = shipped.workspace_path();
+    if path.is_file() {
+        return Ok(CheckpointFile::Path(path));
+    }
+    Err(CliError::input(format!(
+        "the {what} models/{} is not built into this binary and {} does not exist; \
+         pass {flag} FILE (a checkpoint written by cargo xtask)",
+        shipped.file,
+        path.display()
+    )))
+}
+
+/// A pose network loaded with the file that backs it.
+pub struct LoadedPose {
+    pub estimator: PoseEstimator,
+    /// Where it came from (for the run's printed configuration).
+    pub source: String,
+    pub(crate) _file: CheckpointFile,
+}
+
+/// Loads `path`, or the shipped network of `head` when `path` is `None`. With both, the
+/// checkpoint's head must be `head`.
+pub fn load_pose(path: Option<&Path>, head: Option<Head>) -> Result<LoadedPose> {
+    let (file, source) = match path {
+        Some(p) => {
+            check_readable(p, "pose model")?;
+            (
+                CheckpointFile::Path(p.to_path_buf()),
+                p.display().to_string(),
+            )
+        }
+        None => {
+            let shipped = shipped_pose(head.unwrap_or(Head::Softmax));
+            (
+                shipped_file(&shipped, "pose model", "--pose-model")?,
+                shipped.describe(),
+            )
+        }
+    };
+    let estimator = PoseEstimator::load(file.path())
+        .map_err(|e| CliError::from(e).context(format!("loading the pose model {source}")))?;
+    let got = estimator.config().net.head;
+    if let Some(want) = head
+        && got != want
+    {
+        return Err(CliError::input(format!(
+            "{source}: the pose model has a {} head, but --head {} was asked for",
+            got.as_str(),
+            want.as_str()
+        )));
+    }
+    Ok(LoadedPose {
+        estimator,
+        source,
+        _file: file,
+    })
+}
+
+/// A segmentation network and where it came from.
+pub struct LoadedSeg {
+    pub segmenter: Segmenter,
+    pub source: String,
+}
+
+/// Loads `path`, or the shipped segmentation network when `path` is `None`.
+pub fn load_seg(path: Option<&Path>) -> Result<LoadedSeg> {
+    let (file, source) = match path {
+        Some(p) => {
+            check_readable(p, "segmentation model")?;
+            (
+                CheckpointFile::Path(p.to_path_buf()),
+                p.display().to_string(),
+            )
+        }
+        None => (
+            shipped_file(&SEG, "segmentation model", "--seg-model")?,
+            SEG.describe(),
+        ),
+    };
+    // Segmenter::load reads the weights into memory; the file may go afterwards.
+    let segmenter = Segmenter::load(file.path()).map_err(|e| {
+        CliError::from(e).context(format!("loading the segmentation model {source}"))
+    })?;
+    Ok(LoadedSeg { segmenter, source })
+}

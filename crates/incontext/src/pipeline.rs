@@ -1,0 +1,615 @@
+//! The registration pipeline, shared by `register`, `demo`, `eval` and the benchmark tool:
+//!
+//! ```text
+//! depth (model units) ÷ scale ──seg net──► mask ──erode 3×3, back-project, crop 1.2──►
+//!   voxelise 0.0354 ──sample N──► pose network (with M model points) ──► one-shot pose
+//!   ──point-to-plane ICP (all object voxels onto the dense model points)──► pose
+//!   ──Normalisation::pose_to_original──► pose in the model's own units
+//! ```
+//!
+//! The networks work in normalised object units: the mesh is normalised to [-1, 1] on its
+//! longest side (`Normalisation { centre, scale }`) and the depth map, which must be in the
+//! mesh's own units, is divided by `scale`, so the camera frame is scaled but not moved.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use ic_geometry::glam::Vec3;
+use ic_geometry::sampling::{VisibleSurfaceOptions, sample_visible_surface};
+use ic_geometry::{
+    DepthImage, IcpMethod, IcpOptions, IcpTarget, Image, Intrinsics, KdTree, Mask, Mesh,
+    Normalisation, Pose, estimate_normals, random_subsample_indices, voxel_downsample_points,
+};
+use ic_pose::{Head, Refine};
+use ic_seg::PostConfig;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use crate::error::{CliError, Result};
+use crate::models::{LoadedPose, LoadedSeg};
+
+/// The paper's voxel size, 0.05·√2/2 normalised units.
+pub const VOXEL_SIZE: f32 = ic_data::PAPER_VOXEL_SIZE;
+/// Visible-surface model points sampled per mesh (the M the network sees are drawn from them,
+/// and ICP registers onto all of them), as `ic_data` caches them for training.
+pub const DENSE_MODEL_POINTS: usize = 4096;
+/// The paper's match distance (normalised units): an observed point within it of the aligned
+/// model counts as explained in the confidence.
+pub const MATCH_DISTANCE: f32 = ic_data::PAPER_MATCH_THRESHOLD;
+
+/// A known object, ready to be registered: its normalised mesh (when it came from one), how it
+/// was normalised, and its dense visible-surface points with normals (normalised units).
+pub struct Object {
+    pub mesh: Option<Arc<Mesh>>,
+    pub normalisation: Normalisation,
+    pub points: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+    tree: KdTree,
+    /// Seconds spent sampling the points and normals.
+    pub seconds: f64,
+}
+
+impl std::fmt::Debug for Object {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Object")
+            .field("triangles", &self.mesh.as_ref().map(|m| m.triangles.len()))
+            .field("normalisation", &self.normalisation)
+            .field("points", &self.points.len())
+            .finish()
+    }
+}
+
+impl Object {
+    /// Normalises `mesh` (in its own units) and samples its visible surface (seeded).
+    pub fn from_mesh(mut mesh: Mesh, seed: u64) -> Result<Object> {
+        let clock = Instant::now();
+        let normalisation = mesh
+            .normalise()
+            .map_err(|e| CliError::input(format!("the mesh cannot be normalised: {e}")))?;
+        let cloud = sample_visible_surface(
+            &mesh,
+            DENSE_MODEL_POINTS,
+            seed,
+            VisibleSurfaceOptions::default(),
+        )
+        .map_err(|e| CliError::input(format!("sampling the mesh surface: {e}")))?;
+        if cloud.points.len() < 16 {
+            return Err(CliError::input(format!(
+                "the mesh has almost no visible surface ({} points could be sampled)",
+                cloud.points.len()
+            )));
+        }
+        let normals = match cloud.normals {
+            Some(n) if n.len() == cloud.points.len() => n,
+            _ => pca_normals(&cloud.points)?,
+        };
+        let mut object = Object::build(cloud.points, normals, normalisation)?;
+        object.mesh = Some(Arc::new(mesh));
+        object.seconds = clock.elapsed().as_secs_f64();
+        Ok(object)
+    }
+
+    /// An object given by points already in normalised units (e.g. a case's `source.ply`);
+    /// normals are estimated by PCA.
+    pub fn from_points(points: Vec<Vec3>) -> Result<Object> {
+        let clock = Instant::now();
+        if points.len() < 16 {
+            return Err(CliError::input(format!(
+                "the model has {} points; at least 16 are needed",
+                points.len()
+            )));
+        }
+        if points.iter().any(|p| !p.is_finite()) {
+            return Err(CliError::input("the model points are not all finite"));
+        }
+        let normals = pca_normals(&points)?;
+        let mut object = Object::build(
+            points,
+            normals,
+            Normalisation {
+                centre: ic_geometry::glam::DVec3::ZERO,
+                scale: 1.0,
+            },
+        )?;
+        object.seconds = clock.elapsed().as_secs_f64();
+        Ok(object)
+    }
+
+    /// An object already normalised (e.g. from an `ic_data` corpus): its normalised mesh, the
+    /// normalisation of the original, and dense surface points in normalised units.
+    pub fn from_normalised(
+        mesh: Option<Arc<Mesh>>,
+        normalisation: Normalisation,
+        points: Vec<Vec3>,
+    ) -> Result<Object> {
+        let mut object = Object::from_points(points)?;
+        object.mesh = mesh;
+        object.normalisation = normalisation;
+        Ok(object)
+    }
+
+    fn build(
+        points: Vec<Vec3>,
+        normals: Vec<Vec3>,
+        normalisation: Normalisation,
+    ) -> Result<Object> {
+        let tree = KdTree::new(&points)?;
+        Ok(Object {
+            mesh: None,
+            normalisation,
+            points,
+            normals,
+            tree,
+            seconds: 0.0,
+        })
+    }
+}
+
+fn pca_normals(points: &[Vec3]) -> Result<Vec<Vec3>> {
+    let centre = points.iter().copied().sum::<Vec3>() / points.len().max(1) as f32;
+    Ok(estimate_normals(points, 10, centre + Vec3::splat(100.0))?)
+}
+
+/// Settings of the pipeline (printed with every run).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct PipelineOptions {
+    /// Refinement after the one-shot estimate.
+    pub refine: Refine,
+    /// Voxel size of the observed points (normalised units).
+    pub voxel_size: f32,
+    /// ICP: correspondence distance (normalised units) and iterations.
+    pub icp_max_distance: f32,
+    pub icp_iterations: usize,
+    /// ICP registers at most this many object voxels (drawn at random when there are more).
+    pub icp_max_points: usize,
+    /// Fewer object voxels than this after segmentation means the object was not found.
+    pub min_object_points: usize,
+    /// Pose hypotheses: each draws its own M model and N observed points and runs the network
+    /// and the refinement; the one whose pose explains the most observed points wins. 1 is
+    /// the paper's one-shot pipeline.
+    pub hypotheses: usize,
+}
+
+impl Default for PipelineOptions {
+    fn default() -> Self {
+        PipelineOptions {
+            refine: Refine::Icp,
+            voxel_size: VOXEL_SIZE,
+            icp_max_distance: 0.1,
+            icp_iterations: 30,
+            icp_max_points: 4096,
+            min_object_points: 32,
+            hypotheses: 1,
+        }
+    }
+}
+
+/// Seconds spent in each stage of one registration.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct StageSeconds {
+    pub segmentation_network: f64,
+    pub segmentation_post: f64,
+    /// Erosion, back-projection, crop, voxelising, sampling.
+    pub observed_points: f64,
+    pub pose_network: f64,
+    pub icp: f64,
+    /// Everything from the depth map (or points) in memory to the final pose.
+    pub total: f64,
+}
+
+/// Where the object's pixels came from.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct SegmentationSummary {
+    /// `network` or `mask` (given by the user).
+    pub source: &'static str,
+    /// The network's instance score (mean object probability), when it ran.
+    pub score: Option<f32>,
+    /// Pixels of the mask (before erosion).
+    pub pixels: usize,
+}
+
+/// ICP's result.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct IcpSummary {
+    pub fitness: f64,
+    pub inlier_rmse: f64,
+    pub iterations: usize,
+}
+
+/// The result of one registration.
+#[derive(Clone, Debug, Serialize)]
+pub struct Registration {
+    /// Model → camera in the model's own units (the depth map's units).
+    pub pose: Pose,
+    /// Model → camera in normalised units (the network's).
+    pub pose_normalised: Pose,
+    /// The network's one-shot estimate (normalised units), before refinement.
+    pub one_shot_normalised: Pose,
+    /// Fraction of the observed object voxels within [`MATCH_DISTANCE`] (normalised) of the
+    /// model at the final pose, in [0, 1].
+    pub confidence: f64,
+    pub segmentation: Option<SegmentationSummary>,
+    /// Object points after erosion and crop, and after voxelising.
+    pub object_points: usize,
+    pub object_voxels: usize,
+    /// Correspondences the pose rests on, and their mean probability.
+    pub inlier_count: usize,
+    pub assignment_confidence: f32,
+    pub icp: Option<IcpSummary>,
+    pub seconds: StageSeconds,
+    /// The observed object voxels (camera frame, normalised units).
+    #[serde(skip)]
+    pub observed: Vec<Vec3>,
+    /// The object mask used (before erosion), for depth inputs.
+    #[serde(skip)]
+    pub mask: Option<Mask>,
+}
+
+/// The networks and settings of the pipeline.
+pub struct Pipeline {
+    pose: LoadedPose,
+    seg: Option<LoadedSeg>,
+    pub options: PipelineOptions,
+}
+
+impl Pipeline {
+    /// A pipeline over loaded networks. Without a segmentation network, depth inputs need a
+    /// mask.
+    pub fn new(mut pose: LoadedPose, seg: Option<LoadedSeg>, options: PipelineOptions) -> Self {
+        // The pipeline refines itself (onto the dense model, with every object voxel).
+        pose.estimator.recovery.refine = Refine::None;
+        Pipeline { pose, seg, options }
+    }
+
+    /// Loads the networks: `pose_model` or the shipped one of `head`; the segmentation network
+    /// when `with_seg` (`seg_model` or the shipped one).
+    pub fn load(
+        pose_model: Option<&std::path::Path>,
+        head: Option<Head>,
+        seg_model: Option<&std::path::Path>,
+        with_seg: bool,
+        options: PipelineOptions,
+    ) -> Result<Pipeline> {
+        let pose = crate::models::load_pose(pose_model, head)?;
+        let seg = if with_seg {
+            Some(crate::models::load_seg(seg_model)?)
+        } else {
+            None
+        };
+        Ok(Pipeline::new(pose, seg, options))
+    }
+
+    pub fn head(&self) -> Head {
+        self.pose.estimator.config().net.head
+    }
+
+    /// Where the pose network came from.
+    pub fn pose_source(&self) -> &str {
+        &self.pose.source
+    }
+
+    /// Where the segmentation network came from, when loaded.
+    pub fn seg_source(&self) -> Option<&str> {
+        self.seg.as_ref().map(|s| s.source.as_str())
+    }
+
+    /// M and N: the model and observed point counts the pose network was trained with.
+    pub fn point_counts(&self) -> (usize, usize) {
+        let t = &self.pose.estimator.config().train;
+        (t.model_points, t.observed_points)
+    }
+
+    /// The post-processing settings (erosions, crop) — the segmentation network's, or the
+    /// paper's defaults without one.
+    pub fn post_config(&self) -> PostConfig {
+        self.seg
+            .as_ref()
+            .map(|s| s.segmenter.config().post.clone())
+            .unwrap_or_default()
+    }
+
+    /// The configuration printed with every run.
+    pub fn describe(&self) -> serde_json::Value {
+        let (m, n) = self.point_counts();
+        serde_json::json!({
+            "pose_model": self.pose.source,
+            "head": self.head().as_str(),
+            "seg_model": self.seg_source(),
+            "model_points": m,
+            "observed_points": n,
+            "pipeline": self.options,
+            "post": self.post_config(),
+        })
+    }
+
+    /// Registers `object` in `depth` (the object's own units; 0 = no return) seen through
+    /// `intrinsics`. `mask` (the object's pixels) replaces the segmentation network.
+    ///
+    /// Errors: bad input (sizes, an empty mask, no segmentation network and no mask), object
+    /// not found (segmentation finds nothing, or too few object points).
+    pub fn register_depth(
+        &self,
+        object: &Object,
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+        mask: Option<&Mask>,
+        seed: u64,
+    ) -> Result<Registration> {
+        let clock = Instant::now();
+        let inv = (1.0 / object.normalisation.scale) as f32;
+        let depth_n = Image {
+            width: depth.width,
+            height: depth.height,
+            data: depth.data.iter().map(|&z| z * inv).collect(),
+        };
+        self.register_depth_inner(object, &depth_n, intrinsics, mask, seed, clock)
+    }
+
+    /// [`Pipeline::register_depth`] for a depth map already in normalised units (the depth in
+    /// the object's units divided by its normalisation scale).
+    pub fn register_depth_normalised(
+        &self,
+        object: &Object,
+        depth_normalised: &DepthImage,
+        intrinsics: &Intrinsics,
+        mask: Option<&Mask>,
+        seed: u64,
+    ) -> Result<Registration> {
+        self.register_depth_inner(
+            object,
+            depth_normalised,
+            intrinsics,
+            mask,
+            seed,
+            Instant::now(),
+        )
+    }
+
+    fn register_depth_inner(
+        &self,
+        object: &Object,
+        depth_n: &DepthImage,
+        intrinsics: &Intrinsics,
+        mask: Option<&Mask>,
+        seed: u64,
+        clock: Instant,
+    ) -> Result<Registration> {
+        intrinsics
+            .validate()
+            .map_err(|e| CliError::input(e.to_string()))?;
+        depth_n
+            .check_size(intrinsics.width, intrinsics.height)
+            .map_err(|e| CliError::input(format!("depth map: {e}")))?;
+        let mut seconds = StageSeconds::default();
+        let (mask, summary) = match mask {
+            Some(m) => {
+                m.check_size(intrinsics.width, intrinsics.height)
+                    .map_err(|e| CliError::input(format!("mask: {e}")))?;
+                let pixels = m.data.iter().filter(|&&b| b).count();
+                if pixels == 0 {
+                    return Err(CliError::input("the mask is empty (no pixel is set)"));
+                }
+                (
+                    m.clone(),
+                    SegmentationSummary {
+                        source: "mask",
+                        score: None,
+                        pixels,
+                    },
+                )
+            }
+            None => {
+                let seg = self.seg.as_ref().ok_or_else(|| {
+                    CliError::input("no segmentation network loaded and no mask given")
+                })?;
+                let s = seg.segmenter.segment(depth_n, intrinsics)?;
+                seconds.segmentation_network = s.network_seconds;
+                seconds.segmentation_post = s.post_seconds;
+                let pixels = s.mask.data.iter().filter(|&&b| b).count();
+                (
+                    s.mask,
+                    SegmentationSummary {
+                        source: "network",
+                        score: Some(s.score),
+                        pixels,
+                    },
+                )
+            }
+        };
+        let t = Instant::now();
+        let post = self.post_config();
+        let mut eroded = mask.clone();
+        for _ in 0..post.erosions {
+            let e = ic_seg::post::erode3x3(&eroded);
+            if !e.data.iter().any(|&b| b) {
+                break; // a sliver: keep what there is rather than nothing
+            }
+            eroded = e;
+        }
+        let points = ic_seg::post::masked_points(depth_n, intrinsics, &eroded, post.crop_radius)
+            .map_err(|e| match (summary.source, e) {
+                ("mask", e) => CliError::input(format!("mask: {e}")),
+                (_, e) => CliError::not_found(format!("segmentation: {e}")),
+            })?;
+        let voxels = voxel_downsample_points(&points, self.options.voxel_size)?;
+        seconds.observed_points = t.elapsed().as_secs_f64();
+        if voxels.len() < self.options.min_object_points {
+            return Err(CliError::not_found(format!(
+                "object not found: only {} object points ({} voxels) after segmentation, at least {} are needed \
+                 (is the mesh in the depth map's units? see --model-unit-mm)",
+                points.len(),
+                voxels.len(),
+                self.options.min_object_points
+            )));
+        }
+        check_units(&voxels);
+        let mut r = self.register_observed(object, voxels, seed, seconds, clock)?;
+        r.object_points = points.len();
+        r.segmentation = Some(summary);
+        r.mask = Some(mask);
+        Ok(r)
+    }
+
+    /// Registers `object` onto observed object points (camera frame, normalised units), e.g.
+    /// a case's `target.ply`. No segmentation, no voxelising.
+    pub fn register_points(
+        &self,
+        object: &Object,
+        observed: &[Vec3],
+        seed: u64,
+    ) -> Result<Registration> {
+        let clock = Instant::now();
+        if observed.iter().any(|p| !p.is_finite()) {
+            return Err(CliError::input("the observed points are not all finite"));
+        }
+        if observed.len() < self.options.min_object_points.min(16) {
+            return Err(CliError::not_found(format!(
+                "only {} observed points",
+                observed.len()
+            )));
+        }
+        let mut r = self.register_observed(
+            object,
+            observed.to_vec(),
+            seed,
+            StageSeconds::default(),
+            clock,
+        )?;
+        r.object_points = observed.len();
+        Ok(r)
+    }
+
+    fn register_observed(
+        &self,
+        object: &Object,
+        voxels: Vec<Vec3>,
+        seed: u64,
+        mut seconds: StageSeconds,
+        clock: Instant,
+    ) -> Result<Registration> {
+        let mut best: Option<Hypothesis> = None;
+        for h in 0..self.options.hypotheses.max(1) {
+            // Hypothesis 0 draws from `seed` itself, so one hypothesis is the paper's pipeline.
+            let hseed = if h == 0 {
+                seed
+            } else {
+                ic_data::mix_seed(seed, h as u64)
+            };
+            let hyp = self.hypothesis(object, &voxels, hseed, &mut seconds)?;
+            if best.as_ref().is_none_or(|b| hyp.confidence > b.confidence) {
+                best = Some(hyp);
+            }
+        }
+        let best = best.expect("at least one hypothesis");
+        seconds.total = clock.elapsed().as_secs_f64();
+        Ok(Registration {
+            pose: object.normalisation.pose_to_original(&best.pose),
+            pose_normalised: best.pose,
+            one_shot_normalised: best.one_shot,
+            confidence: best.confidence,
+            segmentation: None,
+            object_points: voxels.len(),
+            object_voxels: voxels.len(),
+            inlier_count: best.inlier_count,
+            assignment_confidence: best.assignment_confidence,
+            icp: best.icp,
+            seconds,
+            observed: voxels,
+            mask: None,
+        })
+    }
+
+    /// One draw of M model and N observed points, the network, ICP, and the confidence.
+    fn hypothesis(
+        &self,
+        object: &Object,
+        voxels: &[Vec3],
+        seed: u64,
+        seconds: &mut StageSeconds,
+    ) -> Result<Hypothesis> {
+        let t = Instant::now();
+        let (m, n) = self.point_counts();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let xi = random_subsample_indices(object.points.len(), m, &mut rng)?;
+        let yi = random_subsample_indices(voxels.len(), n, &mut rng)?;
+        let x: Vec<Vec3> = xi.iter().map(|&i| object.points[i]).collect();
+        let y: Vec<Vec3> = yi.iter().map(|&i| voxels[i]).collect();
+        seconds.observed_points += t.elapsed().as_secs_f64();
+
+        let t = Instant::now();
+        let estimate = self.pose.estimator.estimate(&x, &y)?;
+        seconds.pose_network += t.elapsed().as_secs_f64();
+        let one_shot = estimate.pose;
+
+        let (pose, icp) = match self.options.refine {
+            Refine::None => (one_shot, None),
+            Refine::Icp => {
+                let t = Instant::now();
+                let source: Vec<Vec3> = if voxels.len() > self.options.icp_max_points {
+                    random_subsample_indices(voxels.len(), self.options.icp_max_points, &mut rng)?
+                        .into_iter()
+                        .map(|i| voxels[i])
+                        .collect()
+                } else {
+                    voxels.to_vec()
+                };
+                let target = IcpTarget::new(&object.points, Some(&object.normals))?;
+                let options = IcpOptions {
+                    method: IcpMethod::PointToPlane,
+                    max_correspondence_distance: self.options.icp_max_distance,
+                    max_iterations: self.options.icp_iterations,
+                    ..IcpOptions::default()
+                };
+                let result = target.register(&source, &one_shot.inverse(), &options)?;
+                seconds.icp += t.elapsed().as_secs_f64();
+                (
+                    result.pose.inverse().orthonormalised(),
+                    Some(IcpSummary {
+                        fitness: result.fitness,
+                        inlier_rmse: result.inlier_rmse,
+                        iterations: result.iterations,
+                    }),
+                )
+            }
+        };
+        let back = pose.inverse();
+        let explained = voxels
+            .iter()
+            .filter(|&&p| object.tree.nearest(back.apply_f32(p)).distance <= MATCH_DISTANCE)
+            .count();
+        Ok(Hypothesis {
+            pose,
+            one_shot,
+            confidence: explained as f64 / voxels.len().max(1) as f64,
+            inlier_count: estimate.inlier_count,
+            assignment_confidence: estimate.assignment_confidence,
+            icp,
+        })
+    }
+}
+
+/// One pose hypothesis of [`Pipeline::register_observed`].
+struct Hypothesis {
+    pose: Pose,
+    one_shot: Pose,
+    confidence: f64,
+    inlier_count: usize,
+    assignment_confidence: f32,
+    icp: Option<IcpSummary>,
+}
+
+/// Warns when the observed object is far larger or smaller than the model: the usual cause is
+/// a mesh in other units than the depth map.
+fn check_units(voxels: &[Vec3]) {
+    let lo = voxels.iter().fold(Vec3::INFINITY, |a, p| a.min(*p));
+    let hi = voxels.iter().fold(Vec3::NEG_INFINITY, |a, p| a.max(*p));
+    let extent = (hi - lo).max_element();
+    // The normalised model spans 2 on its longest side; a view shows at most its diagonal.
+    if !(0.05..=8.0).contains(&extent) {
+        tracing::warn!(
+            observed_extent = extent,
+            "the observed object spans {extent:.3} normalised units (the model spans 2): are the mesh and the depth map in the same units? (--model-unit-mm)"
+        );
+    }
+}

@@ -1,0 +1,326 @@
+//! `incontext register`: the pose of a mesh in one depth map, from files.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use ic_geometry::Pose;
+use ic_pose::{Head, Refine};
+use serde_json::{Value, json};
+
+use crate::error::Result;
+use crate::inputs;
+use crate::overlay;
+use crate::pipeline::{Object, Pipeline, PipelineOptions, Registration};
+
+/// Flags of `incontext register`.
+#[derive(clap::Args, Debug, Clone, serde::Serialize)]
+pub struct RegisterArgs {
+    /// The object's mesh (OBJ, PLY, OFF, glTF/GLB), in the depth map's units (BOP: mm; see
+    /// --model-unit-mm).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// The depth map: a 16-bit PNG (value × the camera's depth_scale = mm, BOP) or an EXR in
+    /// metres; 0 = no return.
+    #[arg(long)]
+    pub depth: PathBuf,
+    /// BOP-style camera JSON: cam_K (9 numbers, row-major) or fx/fy/cx/cy; width, height
+    /// (optional: the depth map's size); depth_scale (default 1).
+    #[arg(long)]
+    pub camera: PathBuf,
+    /// The object's pixels (8-bit PNG, non-zero = object) instead of the segmentation network.
+    #[arg(long)]
+    pub mask: Option<PathBuf>,
+    #[command(flatten)]
+    pub networks: NetworkArgs,
+    /// Millimetres per mesh unit (1 for BOP meshes in mm, 1000 for meshes in metres).
+    #[arg(long, default_value_t = 1.0)]
+    pub model_unit_mm: f64,
+    /// Write the result (pose, confidence, timings) as JSON here.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Write the model rendered at the estimated pose over the colour-mapped depth (PNG).
+    #[arg(long)]
+    pub overlay: Option<PathBuf>,
+    /// Write the scene points (grey) and the aligned model (red) as a PLY, in mesh units.
+    #[arg(long)]
+    pub ply: Option<PathBuf>,
+}
+
+/// Which networks and refinement (shared by `register`, `demo`, `eval`).
+#[derive(clap::Args, Debug, Clone, serde::Serialize)]
+pub struct NetworkArgs {
+    /// Correspondence head of the shipped pose network: softmax or ot.
+    #[arg(long, value_parser = parse_head)]
+    #[serde(serialize_with = "ser_head")]
+    pub head: Option<Head>,
+    /// Refinement after the one-shot estimate: icp or none.
+    #[arg(long, default_value = "icp", value_parser = parse_refine)]
+    pub refine: Refine,
+    /// A pose checkpoint instead of the shipped one.
+    #[arg(long)]
+    pub pose_model: Option<PathBuf>,
+    /// A segmentation checkpoint instead of the shipped one.
+    #[arg(long)]
+    pub seg_model: Option<PathBuf>,
+    /// Pose hypotheses (each its own point draw, network run and refinement; the one that
+    /// explains the most object points wins). 1 = the paper's one-shot pipeline.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub hypotheses: u32,
+}
+
+fn ser_head<S: serde::Serializer>(h: &Option<Head>, s: S) -> std::result::Result<S::Ok, S::Error> {
+    match h {
+        Some(h) => s.serialize_str(h.as_str()),
+        None => s.serialize_none(),
+    }
+}
+
+pub fn parse_head(s: &str) -> std::result::Result<Head, String> {
+    match s {
+        "softmax" => Ok(Head::Softmax),
+        "ot" => Ok(Head::Ot),
+        other => Err(format!("unknown head {other:?}: expected softmax or ot")),
+    }
+}
+
+pub fn parse_refine(s: &str) -> std::result::Result<Refine, String> {
+    match s {
+        "icp" => Ok(Refine::Icp),
+        "none" => Ok(Refine::None),
+        other => Err(format!(
+            "unknown refinement {other:?}: expected icp or none"
+        )),
+    }
+}
+
+impl NetworkArgs {
+    /// Loads the pipeline (the segmentation network only when `with_seg`).
+    pub fn pipeline(&self, with_seg: bool) -> Result<Pipeline> {
+        let options = PipelineOptions {
+            refine: self.refine,
+            hypotheses: self.hypotheses as usize,
+            ..PipelineOptions::default()
+        };
+        Pipeline::load(
+            self.pose_model.as_deref(),
+            self.head,
+            self.seg_model.as_deref(),
+            with_seg,
+            options,
+        )
+    }
+}
+
+/// `{"R": rows, "t": [x, y, z]}`.
+pub fn pose_json(pose: &Pose) -> Value {
+    let t = pose.translation;
+    json!({"R": pose.rotation_row_major(), "t": [t.x, t.y, t.z]})
+}
+
+/// BOP's `cam_R_m2c` (9 numbers, row-major) and `cam_t_m2c` (mm) of a pose in mesh units.
+pub fn bop_pose_json(pose: &Pose, model_unit_mm: f64) -> Value {
+    let r = pose.rotation_row_major();
+    let t = pose.translation * model_unit_mm;
+    json!({"cam_R_m2c": r.concat(), "cam_t_m2c": [t.x, t.y, t.z], "units": "mm"})
+}
+
+pub(crate) fn ms(seconds: f64) -> f64 {
+    (seconds * 1e6).round() / 1e3
+}
+
+/// The result of `register` (also what `demo` runs on its own files).
+pub struct RegisterOutcome {
+    pub registration: Registration,
+    pub object: Object,
+    /// The JSON report (also written to `--out`).
+    pub report: Value,
+}
+
+/// Runs `register` on files: reads them, registers, writes the requested outputs.
+pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome> {
+    let clock = Instant::now();
+    if !(args.model_unit_mm.is_finite() && args.model_unit_mm > 0.0) {
+        return Err(crate::CliError::input(format!(
+            "--model-unit-mm must be positive, got {}",
+            args.model_unit_mm
+        )));
+    }
+    // Inputs: the camera first (the depth map's size is checked against it).
+    let camera = inputs::read_camera(&args.camera, || inputs::depth_size(&args.depth))?;
+    let k = camera.intrinsics;
+    let depth_mm = inputs::read_depth_mm(&args.depth, &camera)?;
+    let mask = match &args.mask {
+        Some(p) => Some(inputs::read_mask(p, &k)?),
+        None => None,
+    };
+    let mesh = inputs::read_mesh(&args.model)?;
+    let triangles = mesh.triangles.len();
+    // Depth in mesh units.
+    let to_units = (1.0 / args.model_unit_mm) as f32;
+    let depth = ic_geometry::Image {
+        width: depth_mm.width,
+        height: depth_mm.height,
+        data: depth_mm.data.iter().map(|&z| z * to_units).collect(),
+    };
+    let load_seconds = clock.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let pipeline = args.networks.pipeline(mask.is_none())?;
+    let networks_seconds = t.elapsed().as_secs_f64();
+    let config = json!({
+        "seed": seed,
+        "networks": pipeline.describe(),
+        "model_unit_mm": args.model_unit_mm,
+        "depth_scale": camera.depth_scale,
+        "intrinsics": k,
+    });
+    tracing::info!(seed, config = %config, "incontext register");
+
+    let object = Object::from_mesh(mesh, seed).map_err(|e| e.context(args.model.display()))?;
+    let registration = pipeline.register_depth(&object, &depth, &k, mask.as_ref(), seed)?;
+
+    let t = Instant::now();
+    let mut outputs = serde_json::Map::new();
+    if let Some(path) = &args.overlay {
+        let mesh = object
+            .mesh
+            .as_ref()
+            .ok_or_else(|| crate::CliError::internal("the object has no mesh"))?;
+        overlay::write_overlay(
+            path,
+            &depth,
+            &k,
+            mesh,
+            &registration.pose_normalised,
+            registration.mask.as_ref(),
+        )?;
+        outputs.insert("overlay".into(), json!(path));
+    }
+    if let Some(path) = &args.ply {
+        let scale = object.normalisation.scale as f32;
+        let voxel = pipeline.options.voxel_size * scale;
+        let scene = overlay::scene_points(&depth, &k, voxel)?;
+        let aligned: Vec<_> = object
+            .points
+            .iter()
+            .map(|p| registration.pose_normalised.apply_f32(*p) * scale)
+            .collect();
+        overlay::write_two_colour_ply(path, &scene, &aligned)?;
+        outputs.insert("ply".into(), json!(path));
+    }
+    let outputs_seconds = t.elapsed().as_secs_f64();
+
+    let s = &registration.seconds;
+    let report = json!({
+        "command": "register",
+        "seed": seed,
+        "inputs": {"model": args.model, "depth": args.depth, "camera": args.camera, "mask": args.mask, "model_triangles": triangles},
+        "config": config,
+        "pose": pose_json(&registration.pose),
+        "units": format!("pose in the mesh's own units, camera frame (x right, y down, z forward); 1 mesh unit = {} mm", args.model_unit_mm),
+        "pose_bop": bop_pose_json(&registration.pose, args.model_unit_mm),
+        "pose_normalised": pose_json(&registration.pose_normalised),
+        "confidence": registration.confidence,
+        "details": {
+            "segmentation": registration.segmentation,
+            "object_points": registration.object_points,
+            "object_voxels": registration.object_voxels,
+            "inlier_count": registration.inlier_count,
+            "assignment_confidence": registration.assignment_confidence,
+            "icp": registration.icp,
+            "one_shot_normalised": pose_json(&registration.one_shot_normalised),
+            "normalisation": object.normalisation,
+        },
+        "timings_ms": {
+            "load_inputs": ms(load_seconds),
+            "load_networks": ms(networks_seconds),
+            "model_points": ms(object.seconds),
+            "segmentation_network": ms(s.segmentation_network),
+            "segmentation_post": ms(s.segmentation_post),
+            "observed_points": ms(s.observed_points),
+            "pose_network": ms(s.pose_network),
+            "icp": ms(s.icp),
+            "registration": ms(s.total),
+            "outputs": ms(outputs_seconds),
+            "total": ms(clock.elapsed().as_secs_f64()),
+        },
+        "outputs": outputs,
+    });
+    let mut report = report;
+    if let Some(path) = &args.out {
+        report["outputs"]["pose"] = json!(path);
+        inputs::write_json(path, &report)?;
+    }
+    Ok(RegisterOutcome {
+        registration,
+        object,
+        report,
+    })
+}
+
+/// Human-readable lines of a register report.
+pub fn summary_text(report: &Value) -> String {
+    let mut s = String::new();
+    let fmt3 = |v: &Value| -> String {
+        v.as_array()
+            .map(|a| {
+                a.iter()
+                    .map(|x| format!("{:.6}", x.as_f64().unwrap_or(f64::NAN)))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            })
+            .unwrap_or_default()
+    };
+    let pose = &report["pose"];
+    s.push_str("pose (mesh units, camera frame):\n");
+    if let Some(rows) = pose["R"].as_array() {
+        for (i, row) in rows.iter().enumerate() {
+            s.push_str(&format!(
+                "  {} [{}]\n",
+                if i == 0 { "R =" } else { "   " },
+                fmt3(row)
+            ));
+        }
+    }
+    s.push_str(&format!("  t = [{}]\n", fmt3(&pose["t"])));
+    s.push_str(&format!(
+        "  BOP cam_t_m2c = [{}] mm\n",
+        fmt3(&report["pose_bop"]["cam_t_m2c"])
+    ));
+    let d = &report["details"];
+    s.push_str(&format!(
+        "confidence {:.3} ({} object voxels; segmentation: {}{}; ICP fitness {})\n",
+        report["confidence"].as_f64().unwrap_or(f64::NAN),
+        d["object_voxels"],
+        d["segmentation"]["source"].as_str().unwrap_or("?"),
+        d["segmentation"]["score"]
+            .as_f64()
+            .map(|x| format!(" score {x:.3}"))
+            .unwrap_or_default(),
+        d["icp"]["fitness"]
+            .as_f64()
+            .map(|x| format!("{x:.3}"))
+            .unwrap_or_else(|| "–".into()),
+    ));
+    let t = &report["timings_ms"];
+    let f = |k: &str| t[k].as_f64().unwrap_or(f64::NAN);
+    s.push_str(&format!(
+        "timings (ms): load {:.0}, networks {:.0}, model points {:.0}, segmentation {:.0} + {:.0}, observed points {:.0}, pose network {:.0}, ICP {:.0}, registration {:.0}, total {:.0}\n",
+        f("load_inputs"),
+        f("load_networks"),
+        f("model_points"),
+        f("segmentation_network"),
+        f("segmentation_post"),
+        f("observed_points"),
+        f("pose_network"),
+        f("icp"),
+        f("registration"),
+        f("total"),
+    ));
+    if let Some(o) = report["outputs"].as_object() {
+        for (k, v) in o {
+            s.push_str(&format!("wrote {k}: {}\n", v.as_str().unwrap_or("?")));
+        }
+    }
+    s
+}

@@ -1,0 +1,205 @@
+//! Serde configurations with named presets (`cpu`, `tiny`).
+
+use serde::{Deserialize, Serialize};
+
+use crate::{Result, SegError};
+
+/// The encoder–decoder.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct UNetConfig {
+    /// The network's input size; any depth map is resized to it (nearest neighbour, so no
+    /// depth is invented across edges). Both must be divisible by 2^(levels − 1).
+    pub input_width: u32,
+    pub input_height: u32,
+    /// Channels per level, finest first; each level after the first halves the resolution.
+    pub channels: Vec<usize>,
+    /// Batch-norm momentum of the running statistics.
+    pub bn_momentum: f64,
+}
+
+impl UNetConfig {
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(SegError::Config(m));
+        if self.channels.is_empty() || self.channels.contains(&0) {
+            return bad("channels must be non-empty and positive".into());
+        }
+        let div = 1u32 << (self.channels.len() - 1);
+        if self.input_width == 0
+            || self.input_height == 0
+            || self.input_width % div != 0
+            || self.input_height % div != 0
+        {
+            return bad(format!(
+                "input {}×{} must be positive and divisible by {div} for {} levels",
+                self.input_width,
+                self.input_height,
+                self.channels.len()
+            ));
+        }
+        if !(self.bn_momentum > 0.0 && self.bn_momentum <= 1.0) {
+            return bad(format!("bn_momentum {} must be in (0, 1]", self.bn_momentum));
+        }
+        Ok(())
+    }
+}
+
+/// The paper's post-processing (Sec. 3.1): threshold, connected components, best instance,
+/// 3×3 erosion, back-projection, crop around the masked points' centre.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PostConfig {
+    /// Pixel probability above which a pixel is foreground. 0.3 rather than 0.5: the depth
+    /// refinement removes what spills over a depth edge, so the mask may start generous
+    /// (chosen on validation scenes, see `models/README.md`).
+    pub pixel_threshold: f32,
+    /// An instance's score (the mean probability over its pixels) must exceed this.
+    pub score_threshold: f32,
+    /// Components smaller than this (pixels, at the depth map's own resolution) are ignored.
+    pub min_pixels: usize,
+    /// Snap the up-sampled mask to depth edges within this many pixels of its boundary
+    /// (given for 640 pixels of width, scaled with the image; 0 = off). Not in the paper: its
+    /// YOLACT masks are predicted at a higher resolution than our 160×120 network sees.
+    #[serde(default = "default_depth_refine_px")]
+    pub depth_refine_px: usize,
+    /// Largest relative depth step between neighbouring pixels of one surface, for the
+    /// refinement.
+    #[serde(default = "default_depth_jump")]
+    pub depth_jump: f32,
+    /// 3×3 erosions applied before back-projection (the paper: 1).
+    pub erosions: usize,
+    /// Points farther than this from the masked points' centre are dropped, in normalised
+    /// object units (multiplied by the model's normalisation scale; the paper: 1.2).
+    pub crop_radius: f64,
+}
+
+fn default_depth_refine_px() -> usize {
+    4
+}
+
+fn default_depth_jump() -> f32 {
+    0.03
+}
+
+impl Default for PostConfig {
+    fn default() -> Self {
+        PostConfig {
+            pixel_threshold: 0.3,
+            score_threshold: 0.5,
+            min_pixels: 30,
+            depth_refine_px: 4,
+            depth_jump: 0.03,
+            erosions: 1,
+            crop_radius: 1.2,
+        }
+    }
+}
+
+/// Training settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SegTrainConfig {
+    pub batch_size: usize,
+    pub learning_rate: f64,
+    pub iterations: u64,
+    /// Weight of the soft-Dice term beside the per-pixel binary cross-entropy.
+    pub dice_weight: f64,
+    /// Training scenes are rendered at this size (field of view kept) and then resized to
+    /// the network input like any depth map.
+    pub render_width: u32,
+    pub render_height: u32,
+}
+
+/// Everything a checkpoint records.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SegConfig {
+    pub preset: String,
+    pub net: UNetConfig,
+    pub post: PostConfig,
+    pub train: SegTrainConfig,
+}
+
+impl SegConfig {
+    /// The shipped CPU model: a 4-level U-Net, 8-16-32-128 channels (≈ 0.3 M parameters), on a
+    /// 160×120 input; training scenes are rendered at 320×240. Sizes chosen by measurement on
+    /// one core (`examples/seg_step_timing.rs`, batch 8): 16-32-64-128 took 7.8 s a step,
+    /// 12-24-48-96 5.1 s, 8-16-32-64 3.3 s and 8-16-32-128 3.4 s — the wide coarsest level
+    /// (20×15) adds context and parameters for almost no time.
+    pub fn cpu() -> Self {
+        SegConfig {
+            preset: "cpu".into(),
+            net: UNetConfig {
+                input_width: 160,
+                input_height: 120,
+                channels: vec![8, 16, 32, 128],
+                bn_momentum: 0.1,
+            },
+            post: PostConfig::default(),
+            train: SegTrainConfig {
+                batch_size: 4,
+                learning_rate: 1e-3,
+                iterations: 3_000,
+                dice_weight: 1.0,
+                render_width: 320,
+                render_height: 240,
+            },
+        }
+    }
+
+    /// A very small network for tests.
+    pub fn tiny() -> Self {
+        SegConfig {
+            preset: "tiny".into(),
+            net: UNetConfig {
+                input_width: 32,
+                input_height: 24,
+                channels: vec![4, 8],
+                bn_momentum: 0.1,
+            },
+            post: PostConfig {
+                min_pixels: 4,
+                ..PostConfig::default()
+            },
+            train: SegTrainConfig {
+                batch_size: 2,
+                learning_rate: 1e-2,
+                iterations: 200,
+                dice_weight: 1.0,
+                render_width: 64,
+                render_height: 48,
+            },
+        }
+    }
+
+    pub fn preset(name: &str) -> Result<Self> {
+        match name {
+            "cpu" => Ok(Self::cpu()),
+            "tiny" => Ok(Self::tiny()),
+            other => Err(SegError::Config(format!(
+                "unknown preset {other:?} (cpu | tiny)"
+            ))),
+        }
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        self.net.validate()?;
+        let p = &self.post;
+        if !(0.0..1.0).contains(&p.pixel_threshold) || !(0.0..1.0).contains(&p.score_threshold) {
+            return Err(SegError::Config(
+                "pixel_threshold and score_threshold must be in [0, 1)".into(),
+            ));
+        }
+        if !(p.crop_radius > 0.0 && p.crop_radius.is_finite()) {
+            return Err(SegError::Config("crop_radius must be positive".into()));
+        }
+        let t = &self.train;
+        if t.batch_size == 0 || !(t.learning_rate > 0.0) || t.render_width == 0 || t.render_height == 0
+        {
+            return Err(SegError::Config(
+                "batch_size, learning_rate and the render size must be positive".into(),
+            ));
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,180 @@
+//! The inference API: [`Segmenter::load`] then [`Segmenter::segment`].
+
+use std::path::Path;
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
+use glam::Vec3;
+use ic_geometry::{DepthImage, Image, Intrinsics, Mask};
+
+use crate::config::SegConfig;
+use crate::input::{INPUT_CHANNELS, prepare, upsample_bilinear};
+use crate::post::{best_instance, erode3x3, masked_points, refine_with_depth};
+use crate::unet::UNet;
+use crate::{Result, SegError, checkpoint};
+
+/// The object found in a depth map.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Segmentation {
+    /// The best instance's pixels at the depth map's resolution (snapped to depth edges when
+    /// `post.depth_refine_px` > 0; before erosion).
+    pub mask: Mask,
+    /// Its score: the mean object probability over its pixels, in [0, 1].
+    pub score: f32,
+    /// The object probability of every pixel, at the depth map's resolution.
+    pub probability: Image<f32>,
+    /// Seconds spent in the network (input preparation included) and in post-processing.
+    pub network_seconds: f64,
+    pub post_seconds: f64,
+}
+
+/// A trained instance-mask network with its post-processing settings.
+#[derive(Clone, Debug)]
+pub struct Segmenter {
+    net: UNet,
+    config: SegConfig,
+    device: Device,
+}
+
+impl Segmenter {
+    /// Loads a checkpoint written by `cargo xtask train-seg` (the configuration is read from
+    /// its metadata).
+    ///
+    /// Errors: missing or unreadable file, not an `ic_seg` checkpoint, weights that do not
+    /// fit the recorded network.
+    pub fn load(path: &Path) -> Result<Segmenter> {
+        let config = checkpoint::read_config(path)?;
+        let device = Device::Cpu;
+        let tensors = candle_core::safetensors::load(path, &device).map_err(|e| {
+            SegError::Checkpoint {
+                path: path.to_path_buf(),
+                message: format!("reading the weights: {e}"),
+            }
+        })?;
+        let vb = VarBuilder::from_tensors(tensors, DType::F32, &device);
+        let net = UNet::new(vb, &config.net).map_err(|e| SegError::Checkpoint {
+            path: path.to_path_buf(),
+            message: format!("the weights do not fit the network in its metadata: {e}"),
+        })?;
+        Ok(Segmenter {
+            net,
+            config,
+            device,
+        })
+    }
+
+    /// Wraps an in-memory network (e.g. the trainer's).
+    pub fn from_parts(net: UNet, config: SegConfig) -> Segmenter {
+        Segmenter {
+            net,
+            config,
+            device: Device::Cpu,
+        }
+    }
+
+    pub fn config(&self) -> &SegConfig {
+        &self.config
+    }
+
+    /// Settings of the post-processing, e.g. to lower the score threshold.
+    pub fn config_mut(&mut self) -> &mut SegConfig {
+        &mut self.config
+    }
+
+    /// Per-pixel object probabilities of `depths` at the network's resolution, `[B][H·W]`.
+    pub fn probabilities_small(&self, depths: &[&DepthImage]) -> Result<Vec<Vec<f32>>> {
+        let (w, h) = (self.config.net.input_width, self.config.net.input_height);
+        let mut input = Vec::with_capacity(depths.len() * INPUT_CHANNELS * (w * h) as usize);
+        for d in depths {
+            input.extend(prepare(d, w, h)?);
+        }
+        let x = Tensor::from_vec(
+            input,
+            (depths.len(), INPUT_CHANNELS, h as usize, w as usize),
+            &self.device,
+        )?;
+        let p = candle_nn::ops::sigmoid(&self.net.forward_t(&x, false)?.detach())?;
+        Ok(p.flatten_from(1)?.to_vec2::<f32>()?)
+    }
+
+    /// Finds the object in `depth` (any resolution; it must match `intrinsics`).
+    ///
+    /// Errors: [`SegError::ObjectNotFound`] when no instance scores above the threshold;
+    /// [`SegError::Input`] / geometry errors for a depth map that does not fit the camera or
+    /// has no valid pixel.
+    pub fn segment(&self, depth: &DepthImage, intrinsics: &Intrinsics) -> Result<Segmentation> {
+        intrinsics.validate()?;
+        depth.check_size(intrinsics.width, intrinsics.height)?;
+        let t0 = Instant::now();
+        let small = self.probabilities_small(&[depth])?.remove(0);
+        let network_seconds = t0.elapsed().as_secs_f64();
+        let t1 = Instant::now();
+        let (w, h) = (self.config.net.input_width, self.config.net.input_height);
+        let mut prob = upsample_bilinear(&small, w, h, depth.width, depth.height);
+        // No object where the sensor saw nothing.
+        for (p, z) in prob.iter_mut().zip(&depth.data) {
+            if !(z.is_finite() && *z > 0.0) {
+                *p = 0.0;
+            }
+        }
+        let post = &self.config.post;
+        // min_pixels is given for a 640×480 map; scale it with the image area.
+        let area = (depth.width as f64 * depth.height as f64) / (640.0 * 480.0);
+        let min_pixels = ((post.min_pixels as f64 * area).round() as usize).max(1);
+        let best = best_instance(
+            &prob,
+            depth.width,
+            depth.height,
+            post.pixel_threshold,
+            post.score_threshold,
+            min_pixels,
+        )?;
+        let mask = if post.depth_refine_px > 0 {
+            let band = ((post.depth_refine_px as f64 * depth.width as f64 / 640.0).round()
+                as usize)
+                .max(1);
+            refine_with_depth(&best.mask, depth, band, post.depth_jump)
+        } else {
+            best.mask
+        };
+        Ok(Segmentation {
+            mask,
+            score: best.score,
+            probability: Image {
+                width: depth.width,
+                height: depth.height,
+                data: prob,
+            },
+            network_seconds,
+            post_seconds: t1.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// The observed object points of a segmentation, as the paper prepares them: the mask
+    /// eroded (`post.erosions` times 3×3), back-projected, and cropped to `crop_radius ×
+    /// object_scale` around the masked points' centre. `object_scale` is the model's
+    /// normalisation scale in the depth map's units (1 for normalised units).
+    pub fn object_points(
+        &self,
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+        segmentation: &Segmentation,
+        object_scale: f64,
+    ) -> Result<Vec<Vec3>> {
+        let mut mask = segmentation.mask.clone();
+        for _ in 0..self.config.post.erosions {
+            let eroded = erode3x3(&mask);
+            if !eroded.data.iter().any(|&m| m) {
+                break; // a sliver: keep what there is rather than nothing
+            }
+            mask = eroded;
+        }
+        masked_points(
+            depth,
+            intrinsics,
+            &mask,
+            self.config.post.crop_radius * object_scale,
+        )
+    }
+}

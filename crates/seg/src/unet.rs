@@ -1,0 +1,210 @@
+//! The instance-mask network: a compact U-Net on normalised depth.
+//!
+//! U-Net: Ronneberger et al., "U-Net: Convolutional Networks for Biomedical Image
+//! Segmentation", MICCAI 2015 (<https://arxiv.org/abs/1505.04597>). Each level is two
+//! 3×3 convolution + batch norm + ReLU blocks; the encoder halves the resolution with 2×2 max
+//! pooling, the decoder doubles it with nearest-neighbour up-sampling and concatenates the
+//! encoder's features of the same level. A 1×1 convolution gives one object logit per pixel.
+//! It stands in for the paper's YOLACT (see `docs/ARCHITECTURE.md`).
+
+use candle_core::{Result, Tensor};
+use candle_nn::{Init, VarBuilder};
+use ic_nn::norm::BatchNorm2;
+
+use crate::config::UNetConfig;
+use crate::input::INPUT_CHANNELS;
+
+/// A 2-D convolution with seeded Kaiming-uniform weights (`bound = √(6 / fan_in)`), stride 1.
+#[derive(Clone, Debug)]
+pub struct Conv2d {
+    weight: Tensor,
+    bias: Option<Tensor>,
+    padding: usize,
+}
+
+impl Conv2d {
+    pub fn new(
+        vb: VarBuilder,
+        in_channels: usize,
+        out_channels: usize,
+        kernel: usize,
+        bias: bool,
+    ) -> Result<Self> {
+        let fan_in = (in_channels * kernel * kernel) as f64;
+        let bound = (6.0 / fan_in).sqrt();
+        let weight = vb.get_with_hints(
+            (out_channels, in_channels, kernel, kernel),
+            "weight",
+            Init::Uniform {
+                lo: -bound,
+                up: bound,
+            },
+        )?;
+        let bias = if bias {
+            Some(vb.get_with_hints(out_channels, "bias", Init::Const(0.0))?)
+        } else {
+            None
+        };
+        Ok(Conv2d {
+            weight,
+            bias,
+            padding: kernel / 2,
+        })
+    }
+
+    /// `[B, C, H, W]` → `[B, O, H, W]` ("same" padding).
+    ///
+    /// Computed as im2col + one matrix product rather than candle's `conv2d`: on the CPU,
+    /// candle's convolution backward goes through a direct `conv_transpose2d` that made a
+    /// training step of the `cpu` preset take ≈ 37 s at batch 8; the unfolded form back-
+    /// propagates through copies and a GEMM only.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let (b, c, h, w) = x.dims4()?;
+        let (o, _, kh, kw) = self.weight.dims4()?;
+        let y = if kh == 1 && kw == 1 {
+            let w2 = self.weight.reshape((o, c))?;
+            w2.broadcast_matmul(&x.reshape((b, c, h * w))?)?
+        } else {
+            let p = self.padding;
+            let xp = x.pad_with_zeros(2, p, p)?.pad_with_zeros(3, p, p)?;
+            let mut shifted = Vec::with_capacity(kh * kw);
+            for dy in 0..kh {
+                for dx in 0..kw {
+                    shifted.push(xp.narrow(2, dy, h)?.narrow(3, dx, w)?);
+                }
+            }
+            // [B, C, kh·kw, H, W] → [B, C·kh·kw, H·W], matching the weight's [O, C, kh, kw].
+            let cols = Tensor::stack(&shifted, 2)?.reshape((b, c * kh * kw, h * w))?;
+            self.weight
+                .reshape((o, c * kh * kw))?
+                .broadcast_matmul(&cols)?
+        };
+        let y = y.reshape((b, o, h, w))?;
+        match &self.bias {
+            Some(b) => y.broadcast_add(&b.reshape((1, b.dim(0)?, 1, 1))?),
+            None => Ok(y),
+        }
+    }
+}
+
+/// 2×2 max pooling, stride 2, as a reshape and a last-dimension max (fast, with a backward).
+pub fn max_pool2(x: &Tensor) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    x.reshape((b, c, h / 2, 2, w / 2, 2))?
+        .permute((0, 1, 2, 4, 3, 5))?
+        .contiguous()?
+        .reshape((b, c, h / 2, w / 2, 4))?
+        .max(4)
+}
+
+/// 2× nearest-neighbour up-sampling as a broadcast (its backward is a sum; candle's
+/// `upsample_nearest2d` backward overwrites instead of accumulating).
+pub fn upsample2(x: &Tensor) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    x.reshape((b, c, h, 1, w, 1))?
+        .broadcast_as((b, c, h, 2, w, 2))?
+        .reshape((b, c, 2 * h, 2 * w))
+}
+
+/// 3×3 convolution → batch norm → ReLU.
+#[derive(Clone, Debug)]
+struct ConvBnRelu {
+    conv: Conv2d,
+    bn: BatchNorm2,
+}
+
+impl ConvBnRelu {
+    fn new(vb: VarBuilder, cin: usize, cout: usize, momentum: f64) -> Result<Self> {
+        Ok(ConvBnRelu {
+            conv: Conv2d::new(vb.pp("conv"), cin, cout, 3, false)?,
+            bn: BatchNorm2::new(vb.pp("bn"), cout, momentum)?,
+        })
+    }
+
+    fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
+        self.bn.forward_t(&self.conv.forward(x)?, train)?.relu()
+    }
+}
+
+/// Two [`ConvBnRelu`] blocks.
+#[derive(Clone, Debug)]
+struct DoubleConv(ConvBnRelu, ConvBnRelu);
+
+impl DoubleConv {
+    fn new(vb: VarBuilder, cin: usize, cout: usize, momentum: f64) -> Result<Self> {
+        Ok(DoubleConv(
+            ConvBnRelu::new(vb.pp("a"), cin, cout, momentum)?,
+            ConvBnRelu::new(vb.pp("b"), cout, cout, momentum)?,
+        ))
+    }
+
+    fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
+        self.1.forward_t(&self.0.forward_t(x, train)?, train)
+    }
+}
+
+/// The U-Net. Input `[B, 2, H, W]` (see [`crate::input`]), output logits `[B, 1, H, W]`.
+#[derive(Clone, Debug)]
+pub struct UNet {
+    down: Vec<DoubleConv>,
+    up: Vec<DoubleConv>,
+    head: Conv2d,
+    cfg: UNetConfig,
+}
+
+impl UNet {
+    pub fn new(vb: VarBuilder, cfg: &UNetConfig) -> Result<Self> {
+        let ch = &cfg.channels;
+        let m = cfg.bn_momentum;
+        let mut down = Vec::with_capacity(ch.len());
+        let mut cin = INPUT_CHANNELS;
+        for (l, &c) in ch.iter().enumerate() {
+            down.push(DoubleConv::new(vb.pp(format!("down{l}")), cin, c, m)?);
+            cin = c;
+        }
+        // Decoder level l (from the second-coarsest up to the finest) takes the up-sampled
+        // features of level l + 1 concatenated with the encoder's level-l features.
+        let mut up = Vec::with_capacity(ch.len().saturating_sub(1));
+        for l in (0..ch.len() - 1).rev() {
+            up.push(DoubleConv::new(
+                vb.pp(format!("up{l}")),
+                ch[l + 1] + ch[l],
+                ch[l],
+                m,
+            )?);
+        }
+        Ok(UNet {
+            down,
+            up,
+            head: Conv2d::new(vb.pp("head"), ch[0], 1, 1, true)?,
+            cfg: cfg.clone(),
+        })
+    }
+
+    pub fn config(&self) -> &UNetConfig {
+        &self.cfg
+    }
+
+    /// Per-pixel object logits `[B, 1, H, W]`; `train` selects batch statistics.
+    pub fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
+        let mut skips = Vec::with_capacity(self.down.len());
+        let mut h = x.clone();
+        for (l, block) in self.down.iter().enumerate() {
+            if l > 0 {
+                h = max_pool2(&h)?;
+            }
+            h = block.forward_t(&h, train)?;
+            skips.push(h.clone());
+        }
+        let mut h = skips.pop().expect("at least one level");
+        for block in &self.up {
+            let skip = skips.pop().expect("one skip per decoder level");
+            let (_, _, sh, sw) = skip.dims4()?;
+            let upsampled = upsample2(&h)?;
+            debug_assert_eq!(upsampled.dims4()?.2, sh);
+            debug_assert_eq!(upsampled.dims4()?.3, sw);
+            h = block.forward_t(&Tensor::cat(&[&upsampled, &skip], 1)?, train)?;
+        }
+        self.head.forward(&h)
+    }
+}

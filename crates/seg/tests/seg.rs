@@ -1,0 +1,217 @@
+//! Behaviour of the segmentation network, its training and its checkpoints.
+
+use std::collections::HashMap;
+
+use candle_core::{Device, Tensor};
+use ic_geometry::{DepthImage, Intrinsics, Mask};
+use ic_nn::adam::is_trainable;
+use ic_seg::unet::{Conv2d, max_pool2, upsample2};
+use ic_seg::{SegConfig, SegError, SegExample, SegTrainer, Segmenter, seg_loss};
+
+/// A wall at depth 4 with a box at depth 3 whose position depends on `shift`.
+fn scene(shift: u32) -> (DepthImage, Mask) {
+    let (w, h) = (64u32, 48u32);
+    let mut depth = DepthImage::filled(w, h, 4.0);
+    let mut mask = Mask::filled(w, h, false);
+    for v in 12 + shift..30 + shift {
+        for u in 16 + 2 * shift..36 + 2 * shift {
+            let i = (v * w + u) as usize;
+            depth.data[i] = 3.0 + 0.02 * (u as f32 - 26.0).abs();
+            mask.data[i] = true;
+        }
+    }
+    (depth, mask)
+}
+
+fn examples(cfg: &SegConfig) -> Vec<SegExample> {
+    (0..2)
+        .map(|s| {
+            let (d, m) = scene(s * 4);
+            SegExample::new(&d, &m, cfg).unwrap()
+        })
+        .collect()
+}
+
+fn check_close(a: &Tensor, b: &Tensor, tol: f32) {
+    let a = a.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let b = b.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(&b) {
+        assert!((x - y).abs() <= tol * (1.0 + y.abs()), "{x} vs {y}");
+    }
+}
+
+#[test]
+fn unfolded_convolution_matches_candles_conv2d() {
+    let dev = Device::Cpu;
+    let map = candle_nn::VarMap::new();
+    let vb = ic_nn::seeded_var_builder(&map, 5, &dev);
+    let conv = Conv2d::new(vb.pp("c"), 3, 5, 3, true).unwrap();
+    let x = Tensor::randn(0f32, 1.0, (2, 3, 7, 9), &dev).unwrap();
+    let ours = conv.forward(&x).unwrap();
+    let data = map.data().lock().unwrap();
+    let w = data["c.weight"].as_tensor().clone();
+    let b = data["c.bias"].as_tensor().clone();
+    let reference = x
+        .conv2d(&w, 1, 1, 1, 1)
+        .unwrap()
+        .broadcast_add(&b.reshape((1, 5, 1, 1)).unwrap())
+        .unwrap();
+    check_close(&ours, &reference, 1e-5);
+}
+
+#[test]
+fn pooling_and_upsampling_match_candles_ops() {
+    let dev = Device::Cpu;
+    let x = Tensor::randn(0f32, 1.0, (2, 3, 6, 8), &dev).unwrap();
+    check_close(&max_pool2(&x).unwrap(), &x.max_pool2d(2).unwrap(), 0.0);
+    check_close(&upsample2(&x).unwrap(), &x.upsample_nearest2d(12, 16).unwrap(), 0.0);
+}
+
+#[test]
+fn every_parameter_receives_a_gradient() {
+    let cfg = SegConfig::tiny();
+    let trainer = SegTrainer::new(cfg.clone(), 3).unwrap();
+    let ex = examples(&cfg);
+    let (w, h) = (cfg.net.input_width as usize, cfg.net.input_height as usize);
+    let x = Tensor::from_vec(
+        ex.iter().flat_map(|e| e.input.clone()).collect::<Vec<_>>(),
+        (2, 2, h, w),
+        &Device::Cpu,
+    )
+    .unwrap();
+    let y = Tensor::from_vec(
+        ex.iter().flat_map(|e| e.target.clone()).collect::<Vec<_>>(),
+        (2, 1, h, w),
+        &Device::Cpu,
+    )
+    .unwrap();
+    let loss = seg_loss(&trainer.net().forward_t(&x, true).unwrap(), &y, 1.0).unwrap();
+    let grads = loss.backward().unwrap();
+    let mut seen = 0;
+    for (name, var) in trainer.varmap().data().lock().unwrap().iter() {
+        if !is_trainable(name) {
+            continue;
+        }
+        seen += 1;
+        let g = grads
+            .get(var.as_tensor())
+            .map(|g| g.abs().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap())
+            .unwrap_or(0.0);
+        assert!(g.is_finite() && g > 0.0, "{name}: gradient {g}");
+    }
+    assert!(seen >= 12, "only {seen} parameters");
+}
+
+#[test]
+fn tiny_network_overfits_a_fixed_batch() {
+    let cfg = SegConfig::tiny();
+    let ex = examples(&cfg);
+    let mut trainer = SegTrainer::new(cfg, 11).unwrap();
+    let first = trainer.loss(&ex).unwrap();
+    let mut last = trainer.step(&ex).unwrap();
+    for _ in 0..150 {
+        last = trainer.step(&ex).unwrap();
+    }
+    let after = trainer.loss(&ex).unwrap();
+    assert!(
+        after < 0.1 * first,
+        "loss {first} → {after} (training-mode {})",
+        last.loss
+    );
+    assert!(last.iou > 0.9, "IoU {}", last.iou);
+    // And the segmenter finds the box at full resolution.
+    let (depth, mask) = scene(0);
+    let k = Intrinsics::new(60.0, 60.0, 31.5, 23.5, 64, 48).unwrap();
+    let seg = trainer.segmenter().segment(&depth, &k).unwrap();
+    let iou = ic_seg::post::iou(&seg.mask, &mask);
+    assert!(iou > 0.8, "IoU {iou}");
+}
+
+fn outputs(seg: &Segmenter) -> Vec<f32> {
+    let (d, _) = scene(2);
+    seg.probabilities_small(&[&d]).unwrap().remove(0)
+}
+
+#[test]
+fn checkpoint_round_trips_bit_identically() {
+    let cfg = SegConfig::tiny();
+    let ex = examples(&cfg);
+    let mut trainer = SegTrainer::new(cfg, 2).unwrap();
+    for _ in 0..3 {
+        trainer.step(&ex).unwrap();
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("seg.safetensors");
+    trainer.save_weights(&path).unwrap();
+    let loaded = Segmenter::load(&path).unwrap();
+    assert_eq!(loaded.config(), trainer.config());
+    assert_eq!(outputs(&loaded), outputs(&trainer.segmenter()));
+}
+
+#[test]
+fn resumed_run_matches_uninterrupted_run() {
+    let cfg = SegConfig::tiny();
+    let ex = examples(&cfg);
+    let mut straight = SegTrainer::new(cfg.clone(), 9).unwrap();
+    for _ in 0..4 {
+        straight.step(&ex).unwrap();
+    }
+    let mut first = SegTrainer::new(cfg, 9).unwrap();
+    for _ in 0..2 {
+        first.step(&ex).unwrap();
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("latest.safetensors");
+    first.save(&path).unwrap();
+    let mut resumed = SegTrainer::resume(&path).unwrap();
+    assert_eq!(resumed.iteration(), 2);
+    for _ in 0..2 {
+        resumed.step(&ex).unwrap();
+    }
+    assert_eq!(outputs(&resumed.segmenter()), outputs(&straight.segmenter()));
+}
+
+#[test]
+fn loading_something_else_is_a_clear_checkpoint_error() {
+    let dir = tempfile::tempdir().unwrap();
+    // Not a file at all.
+    let missing = dir.path().join("missing.safetensors");
+    let e = Segmenter::load(&missing).unwrap_err();
+    assert!(matches!(e, SegError::Io { .. }), "{e}");
+    assert!(e.to_string().contains("missing.safetensors"));
+    // A safetensors file without our configuration (e.g. another network's).
+    let other = dir.path().join("other.safetensors");
+    let t = Tensor::new(&[1f32], &Device::Cpu).unwrap();
+    ic_nn::checkpoint::save(&other, &[("w".into(), t)], HashMap::new()).unwrap();
+    let e = Segmenter::load(&other).unwrap_err();
+    assert!(e.to_string().contains("not a segmentation checkpoint"), "{e}");
+    // Our configuration, weights of another shape.
+    let trainer = SegTrainer::new(SegConfig::tiny(), 1).unwrap();
+    let good = dir.path().join("good.safetensors");
+    trainer.save_weights(&good).unwrap();
+    let mut cfg = SegConfig::tiny();
+    cfg.net.channels = vec![6, 8];
+    let meta = HashMap::from([(
+        ic_seg::checkpoint::CONFIG_KEY.to_string(),
+        serde_json::to_string(&cfg).unwrap(),
+    )]);
+    let tensors = ic_nn::checkpoint::varmap_tensors(trainer.varmap());
+    let wrong = dir.path().join("wrong.safetensors");
+    ic_nn::checkpoint::save(&wrong, &tensors, meta).unwrap();
+    let e = Segmenter::load(&wrong).unwrap_err();
+    assert!(e.to_string().contains("do not fit"), "{e}");
+}
+
+#[test]
+fn segment_rejects_a_depth_map_of_another_size_or_without_valid_pixels() {
+    let seg = SegTrainer::new(SegConfig::tiny(), 1).unwrap().segmenter();
+    let k = Intrinsics::new(60.0, 60.0, 31.5, 23.5, 64, 48).unwrap();
+    let small = DepthImage::filled(32, 24, 1.0);
+    assert!(seg.segment(&small, &k).is_err());
+    let empty = DepthImage::filled(64, 48, 0.0);
+    match seg.segment(&empty, &k) {
+        Err(SegError::Input(m)) => assert!(m.contains("no valid pixel"), "{m}"),
+        other => panic!("{other:?}"),
+    }
+}
