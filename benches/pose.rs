@@ -1,5 +1,5 @@
-//! Benchmarks of `ic_pose` (cpu preset network, random weights): forward time per pair at
-//! 512/1024/2048 model points (N = ¾·M observed) for both heads, and one training step
+//! Benchmarks of `ic_pose` (random weights): forward time per pair at 512/1024/2048 model
+//! points (N = ¾·M observed) for both presets (`cpu`, `paper`) and both heads, and one training step
 //! (batch of the preset at its training sizes) → pairs/hour = batch · 3600 / step seconds.
 //!
 //! Points are random in the unit cube; timings do not depend on the values.
@@ -30,20 +30,24 @@ fn baseline(c: &mut Criterion) {
 }
 
 fn forward(c: &mut Criterion) {
-    let mut group = c.benchmark_group("pose_forward");
-    group.sample_size(10);
-    for head in [Head::Softmax, Head::Ot] {
-        let trainer = Trainer::new(PoseConfig::cpu(head), 1).expect("network");
-        let est: PoseEstimator = trainer.estimator();
-        for m in [512usize, 1024, 2048] {
-            let n = m * 3 / 4;
-            let (x, y) = (points(1, m), points(2, n));
-            group.bench_function(format!("{}_{m}x{n}", head.as_str()), |b| {
-                b.iter(|| est.infer(&x, &y).expect("forward"))
-            });
+    // The paper's Table 3 columns, for both presets and both heads.
+    for preset in ["cpu", "paper"] {
+        let mut group = c.benchmark_group(format!("pose_forward_{preset}"));
+        group.sample_size(10);
+        for head in [Head::Softmax, Head::Ot] {
+            let cfg = PoseConfig::preset(preset, head).expect("preset");
+            let trainer = Trainer::new(cfg, 1).expect("network");
+            let est: PoseEstimator = trainer.estimator();
+            for m in [512usize, 1024, 2048] {
+                let n = m * 3 / 4;
+                let (x, y) = (points(1, m), points(2, n));
+                group.bench_function(format!("{}_{m}x{n}", head.as_str()), |b| {
+                    b.iter(|| est.infer(&x, &y).expect("forward"))
+                });
+            }
         }
+        group.finish();
     }
-    group.finish();
 }
 
 fn train_step(c: &mut Criterion) {

@@ -60,7 +60,9 @@ fn train_step(c: &mut Criterion) {
     let ex = SegExample::new(&depth, &mask, &cfg).expect("example");
     let batch = vec![ex; cfg.train.batch_size];
     let mut trainer = SegTrainer::new(cfg, 1).expect("network");
-    group.bench_function("cpu_batch", |b| b.iter(|| trainer.step(&batch).expect("step")));
+    group.bench_function("cpu_batch", |b| {
+        b.iter(|| trainer.step(&batch).expect("step"))
+    });
     group.finish();
 }
 

@@ -1,9 +1,14 @@
 //! `cargo xtask` — the project's only workflow tool (see `.cargo/config.toml`).
 //!
-//! - `cargo xtask test` runs the whole test suite (the README's test command; CI runs it).
-//! - `cargo xtask bench [NAME…]` runs the criterion benchmarks under `benches/` (all by
-//!   default), then prints each benchmark's median next to its ratio to the baseline measured in
-//!   the same run, and writes the same table to `target/bench-summary.json`.
+//! - `cargo xtask test` runs the whole test suite (the README's test command; CI runs it),
+//!   then `cargo xtask bench --quick --strict` (skipped when `INCONTEXT_SKIP_BENCH` is set).
+//! - `cargo xtask bench [--quick] [--peers]` measures accuracy and speed of our methods beside
+//!   Open3D's on fixed case sets and writes `docs/results.md` and `docs/results.json` (see
+//!   `bench.rs`; `--quick` is the small version CI runs, written under `target/bench-quick/`).
+//!   `cargo xtask bench --criterion [NAME…]` (or `cargo xtask bench NAME…`) runs the criterion
+//!   benchmarks under `benches/` (all by default), then prints each benchmark's median next to
+//!   its ratio to the baseline measured in the same run, and writes the same table to
+//!   `target/bench-summary.json`.
 //!
 //! - `cargo xtask gen-data` writes fixed object-alone and room test sets (BOP layout) with a
 //!   manifest (seed, configuration, objects used, counts, statistics).
@@ -15,10 +20,21 @@
 //! - `cargo xtask eval-pose --model FILE --objects DIR …` measures a checkpoint on the test
 //!   split (rotation/translation accuracies, JSON report).
 //!
-//! A later issue adds `train-seg` here.
+//! - `cargo xtask train-seg --objects DIR --out DIR …` trains the instance-mask network on
+//!   room scenes rendered on the fly (resumable, Ctrl-C saves).
+//! - `cargo xtask eval-seg --model FILE --objects DIR [--geometric]` measures mask IoU and the
+//!   found rate on test-split room scenes, optionally beside the geometry-only alternative.
+//! - `cargo xtask seg-post --model FILE --out FILE [--pixel-threshold …]` rewrites a
+//!   segmentation checkpoint's post-processing settings (chosen on validation scenes).
 
+mod bench;
+mod bench_cases;
+mod bench_report;
+mod bench_run;
+mod bench_speed;
 mod data;
 mod pose;
+mod seg;
 
 // Large element-wise tensor ops are ~10x slower with glibc's malloc (fresh pages each time).
 #[global_allocator]
@@ -39,14 +55,14 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Cmd {
-    /// Run the whole test suite: every target of every crate (benches once, in test mode), then
-    /// the doc tests. This is the README's test command and what CI runs.
+    /// Run the whole test suite: every target of every crate (benches once, in test mode), the
+    /// doc tests, then the quick bench (`bench --quick --strict`; set INCONTEXT_SKIP_BENCH to
+    /// skip it). This is the README's test command and what CI runs.
     Test,
-    /// Run criterion benchmarks and summarise medians as ratios to the in-run baseline.
-    Bench {
-        /// Benchmarks to run (file stems under benches/); all when empty.
-        names: Vec<String>,
-    },
+    /// Accuracy and speed of our methods and Open3D's on fixed case sets → docs/results.md
+    /// (`--quick`: the small version, under target/bench-quick/); `--criterion [NAME…]` runs the
+    /// criterion benchmarks instead.
+    Bench(bench::BenchArgs),
     /// Write fixed test sets (object alone and in the room) as BOP datasets with a manifest.
     GenData(data::GenDataArgs),
     /// Write registration cases for other tools (Open3D, TEASER++).
@@ -55,6 +71,12 @@ enum Cmd {
     TrainPose(pose::TrainArgs),
     /// Evaluate a pose checkpoint on fixed test samples.
     EvalPose(pose::EvalArgs),
+    /// Train the instance-mask network (ic_seg) on room scenes rendered on the fly.
+    TrainSeg(seg::TrainArgs),
+    /// Evaluate a segmentation checkpoint on test-split room scenes.
+    EvalSeg(seg::EvalArgs),
+    /// Write a segmentation checkpoint's weights with new post-processing settings.
+    SegPost(seg::PostArgs),
 }
 
 /// Which crate owns each benchmark file under `benches/`.
@@ -63,11 +85,13 @@ const BENCHES: &[(&str, &str)] = &[
     ("render", "ic_render"),
     ("data", "ic_data"),
     ("pose", "ic_pose"),
+    ("sinkhorn", "ic_pose"),
+    ("seg", "ic_seg"),
 ];
 
 fn main() -> std::process::ExitCode {
     let result = match Cli::parse().command {
-        Cmd::Bench { names } => bench(&names),
+        Cmd::Bench(args) => bench::run(args),
         Cmd::Test => test(),
         Cmd::GenData(args) => {
             init_tracing();
@@ -84,6 +108,18 @@ fn main() -> std::process::ExitCode {
         Cmd::EvalPose(args) => {
             init_tracing();
             pose::eval(args)
+        }
+        Cmd::TrainSeg(args) => {
+            init_tracing();
+            seg::train(args)
+        }
+        Cmd::EvalSeg(args) => {
+            init_tracing();
+            seg::eval(args)
+        }
+        Cmd::SegPost(args) => {
+            init_tracing();
+            seg::set_post(args)
         }
     };
     match result {
@@ -128,10 +164,19 @@ fn cargo(args: &[&str]) -> Result<()> {
 
 fn test() -> Result<()> {
     cargo(&["test", "--workspace", "--all-targets"])?;
-    cargo(&["test", "--workspace", "--doc"])
+    cargo(&["test", "--workspace", "--doc"])?;
+    // The small accuracy/speed bench (about 1.5 min on 2 cores), so `cargo xtask bench` and
+    // `incontext eval --cases` cannot rot; writes under target/bench-quick/ only.
+    if std::env::var_os("INCONTEXT_SKIP_BENCH").is_some() {
+        eprintln!("== INCONTEXT_SKIP_BENCH is set: skipping `cargo xtask bench --quick`");
+        return Ok(());
+    }
+    let quick_bench = ["run", "-p", "xtask", "--", "bench", "--quick", "--strict"];
+    cargo(&quick_bench)
 }
 
-fn bench(names: &[String]) -> Result<()> {
+/// The criterion benchmarks (`cargo xtask bench --criterion [NAME…]`).
+fn criterion_bench(names: &[String]) -> Result<()> {
     let root = workspace_root();
     let selected: Vec<(&str, &str)> = if names.is_empty() {
         BENCHES

@@ -96,6 +96,13 @@ pub struct EvalArgs {
     /// Unweighted Procrustes.
     #[arg(long)]
     unweighted: bool,
+    /// Before evaluating, replace the batch-norm running statistics by their mean over this
+    /// many batches of training-split samples (precise BN; 0 = keep the checkpoint's).
+    #[arg(long, default_value_t = 0)]
+    recalibrate_bn: usize,
+    /// With --recalibrate-bn: write the recalibrated weights here (weights-only checkpoint).
+    #[arg(long)]
+    save_recalibrated: Option<PathBuf>,
     /// Where to write the JSON (default `<model>.eval-<split>.json`).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -262,7 +269,11 @@ fn apply_overrides(cfg: &mut PoseConfig, a: &TrainArgs) {
 
 /// Keeps the CSV rows up to `iteration` (after a resume, the rows written past the last
 /// checkpoint are dropped so the log matches an uninterrupted run) and opens it for append.
-pub(crate) fn open_csv(path: &Path, header: &str, keep_up_to: Option<u64>) -> Result<std::fs::File> {
+pub(crate) fn open_csv(
+    path: &Path,
+    header: &str,
+    keep_up_to: Option<u64>,
+) -> Result<std::fs::File> {
     let mut keep = String::new();
     if let (Some(limit), Ok(text)) = (keep_up_to, std::fs::read_to_string(path)) {
         for (i, line) in text.lines().enumerate() {
@@ -499,9 +510,46 @@ pub fn train(args: TrainArgs) -> Result<()> {
     Ok(())
 }
 
+/// Seed of the sample stream used to recalibrate batch norm (training split).
+const RECALIBRATION_SEED: u64 = 0x0062_726e;
+
 pub fn eval(args: EvalArgs) -> Result<()> {
     set_threads(args.threads);
-    let mut est = PoseEstimator::load(&args.model)?;
+    let mut est = if args.recalibrate_bn > 0 {
+        let cfg = ic_pose::checkpoint::read_config(&args.model)?;
+        let mut trainer = Trainer::new(cfg.clone(), 0)?;
+        trainer.load_weights(&args.model)?;
+        let corpus = Arc::new(Corpus::mesh_folder(
+            &args.objects,
+            &blob_split(true),
+            Split::Train,
+            CorpusOptions::default(),
+        )?);
+        let generator =
+            ObjectSampleGenerator::new(corpus, sample_config(&cfg), RECALIBRATION_SEED)?;
+        let b = cfg.train.batch_size;
+        let batches: Vec<Vec<ObjectSample>> = (0..args.recalibrate_bn as u64)
+            .map(|k| {
+                (0..b as u64)
+                    .map(|i| generator.sample(k * b as u64 + i))
+                    .collect()
+            })
+            .collect::<Result<_, _>>()?;
+        trainer.recalibrate_batch_norm(&batches)?;
+        eprintln!(
+            "batch norm recalibrated on {} batches of {b} training-split samples (seed {RECALIBRATION_SEED:#x})",
+            args.recalibrate_bn
+        );
+        if let Some(out) = &args.save_recalibrated {
+            trainer.save_weights(out)?;
+            eprintln!("written {}", out.display());
+        }
+        let mut e = trainer.estimator();
+        e.recovery = PoseEstimator::load(&args.model)?.recovery;
+        e
+    } else {
+        PoseEstimator::load(&args.model)?
+    };
     est.recovery.refine = match args.refine.as_str() {
         "none" => Refine::None,
         "icp" => Refine::Icp,

@@ -162,7 +162,11 @@ pub fn train(args: TrainArgs) -> Result<()> {
     let best_path = args.out.join("best.safetensors");
     let mut trainer = if args.resume && latest.exists() {
         let mut t = SegTrainer::resume(&latest)?;
-        eprintln!("resuming {} at iteration {}", latest.display(), t.iteration());
+        eprintln!(
+            "resuming {} at iteration {}",
+            latest.display(),
+            t.iteration()
+        );
         if let Some(it) = args.iterations {
             t.set_iterations(it);
         }
@@ -252,7 +256,13 @@ pub fn train(args: TrainArgs) -> Result<()> {
     let clock = Instant::now();
     let mut last_ckpt = Instant::now();
     let (mut loss_avg, mut iou_avg) = (f64::NAN, f64::NAN);
-    let ema = |avg: f64, x: f64| if avg.is_nan() { x } else { 0.95 * avg + 0.05 * x };
+    let ema = |avg: f64, x: f64| {
+        if avg.is_nan() {
+            x
+        } else {
+            0.95 * avg + 0.05 * x
+        }
+    };
     let mut done = start;
     for batch in batches {
         let views = batch?;
@@ -353,7 +363,10 @@ pub fn eval(args: EvalArgs) -> Result<()> {
         RoomSampleConfig::default(),
         args.seed,
     )?);
-    eprintln!("seed {}; {} scenes of the {} split at 640×480", args.seed, args.count, args.split);
+    eprintln!(
+        "seed {}; {} scenes of the {} split at 640×480",
+        args.seed, args.count, args.split
+    );
     let views = Prefetcher::new(0, Some(args.count), 1, 4, move |i| {
         generator.view_with(&mut CpuRenderer::new(), i)
     });
@@ -406,7 +419,8 @@ pub fn eval(args: EvalArgs) -> Result<()> {
         "network": network,
     });
     if args.geometric {
-        report["geometric"] = serde_json::to_value(mask_metrics(&geo_ious, geo_not_found, &geo_secs))?;
+        report["geometric"] =
+            serde_json::to_value(mask_metrics(&geo_ious, geo_not_found, &geo_secs))?;
         report["geometric_config"] = serde_json::to_value(&geo_cfg)?;
         report["per_scene_iou_geometric"] = serde_json::to_value(&geo_ious)?;
     }

@@ -333,7 +333,11 @@ impl RoomSampleGenerator {
     /// model points): the draws are those of [`Self::sample_with`], but a view is redrawn
     /// when fewer than `min_object_voxels` pixels of the object are visible, so for a barely
     /// visible object the two may pick different scenes.
-    pub fn view_with(&self, renderer: &mut dyn Renderer, index: u64) -> Result<RoomView, DataError> {
+    pub fn view_with(
+        &self,
+        renderer: &mut dyn Renderer,
+        index: u64,
+    ) -> Result<RoomView, DataError> {
         let cfg = &self.config;
         let mut rng = sample_rng(self.seed, index);
         let mut last = 0;
@@ -360,7 +364,9 @@ impl RoomSampleGenerator {
                 model_extent: {
                     let v = &object.mesh.vertices;
                     let lo = v.iter().fold(Vec3::splat(f32::INFINITY), |a, p| a.min(*p));
-                    let hi = v.iter().fold(Vec3::splat(f32::NEG_INFINITY), |a, p| a.max(*p));
+                    let hi = v
+                        .iter()
+                        .fold(Vec3::splat(f32::NEG_INFINITY), |a, p| a.max(*p));
                     (hi - lo).length() as f64
                 },
             });

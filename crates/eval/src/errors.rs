@@ -188,6 +188,60 @@ mod tests {
         assert!((rotation_error_deg(&flip, &Pose::IDENTITY) - 180.0).abs() < 1e-9);
     }
 
+    /// Hand-computed values: the identity, 90° about each axis (R̂ᵀR has trace 1, so
+    /// arccos(0) = 90°), 180° about each axis and about a diagonal (trace −1), angles just
+    /// below 180° (no NaN from rounding), symmetry of the error, and translations.
+    #[test]
+    fn errors_match_hand_computed_values() {
+        use std::f64::consts::{FRAC_PI_2, PI};
+        let t = DVec3::new(0.1, -0.2, 2.8);
+        let truth = Pose::from_translation(t);
+        assert_eq!(rotation_error_deg(&truth, &truth), 0.0);
+        assert_eq!(translation_error_sq(&truth, &truth), 0.0);
+        assert_eq!(translation_error(&truth, &truth), 0.0);
+        let diag = DVec3::new(1.0, 1.0, 1.0).normalize();
+        for axis in [DVec3::X, DVec3::Y, DVec3::Z, -DVec3::X, diag] {
+            let quarter = Pose::from_axis_angle(axis, FRAC_PI_2, t);
+            let e = rotation_error_deg(&quarter, &truth);
+            assert!((e - 90.0).abs() < 1e-9, "{axis}: {e}");
+            // The same error whichever pose is called the estimate.
+            assert!((rotation_error_deg(&truth, &quarter) - e).abs() < 1e-12);
+            // 90° about an axis and 90° back about it compose to 180° apart.
+            let back = Pose::from_axis_angle(axis, -FRAC_PI_2, t);
+            assert!((rotation_error_deg(&quarter, &back) - 180.0).abs() < 1e-9);
+            // 180° about any axis is the largest error, whatever the axis (the ambiguity:
+            // a half turn has two axis directions and the error must not depend on it).
+            let half = Pose::from_axis_angle(axis, PI, t);
+            let minus = Pose::from_axis_angle(-axis, PI, t);
+            assert!((rotation_error_deg(&half, &truth) - 180.0).abs() < 1e-9);
+            assert!(rotation_error_deg(&half, &minus) < 1e-6);
+            for eps in [1e-9, 1e-6, 1e-3] {
+                let near = Pose::from_axis_angle(axis, PI - eps, t);
+                let e = rotation_error_deg(&near, &truth);
+                assert!(
+                    e.is_finite() && (e - (180.0 - eps.to_degrees())).abs() < 1e-6,
+                    "{e}"
+                );
+            }
+            // Errors never exceed 180°: 270° about an axis is 90° the other way.
+            let big = Pose::from_axis_angle(axis, 1.5 * PI, t);
+            assert!((rotation_error_deg(&big, &truth) - 90.0).abs() < 1e-9);
+        }
+        // The rotation error ignores translation and vice versa.
+        let moved = Pose::from_axis_angle(DVec3::Z, FRAC_PI_2, t + DVec3::new(0.0, 0.0, 1.0));
+        assert!((rotation_error_deg(&moved, &truth) - 90.0).abs() < 1e-9);
+        assert!((translation_error(&moved, &truth) - 1.0).abs() < 1e-12);
+        // Known translations: a 3-4-5 triangle, and the paper's 1e-2 threshold at 0.1.
+        let est = Pose::from_translation(t + DVec3::new(0.3, 0.0, -0.4));
+        assert!((translation_error(&est, &truth) - 0.5).abs() < 1e-12);
+        assert!((translation_error_sq(&est, &truth) - 0.25).abs() < 1e-12);
+        let est = Pose::from_translation(t + DVec3::new(0.0, 0.1, 0.0));
+        assert!((translation_error_sq(&est, &truth) - 1e-2).abs() < 1e-15);
+        let e = PoseErrors::compute(&est, &truth, None).unwrap();
+        assert_eq!((e.rotation_deg, e.add, e.add_s), (0.0, None, None));
+        assert!((e.translation - 0.1).abs() < 1e-12);
+    }
+
     #[test]
     fn add_s_forgives_symmetry_that_add_punishes() {
         let pts = square();

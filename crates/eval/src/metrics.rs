@@ -175,6 +175,30 @@ mod tests {
         assert!(median(&[]).is_nan());
     }
 
+    /// mAP and AUC on a small list worked out by hand: errors 2°, 7°, 12°, 40° and a failure.
+    #[test]
+    fn map_and_auc_on_a_small_hand_computed_list() {
+        let e = [2.0, 7.0, 12.0, 40.0, f64::INFINITY];
+        // acc@5 = 1/5, acc@10 = 2/5, acc@15 = 3/5 → mAP@15° = (1 + 2 + 3)/15 = 0.4.
+        assert_eq!(accuracy_curve(&e, &[5.0, 10.0, 15.0]), vec![0.2, 0.4, 0.6]);
+        assert!((map_yi2018(&e, 5.0, 15.0) - 0.4).abs() < 1e-12);
+        // mAP@10° = (1/5 + 2/5)/2 = 0.3; mAP@30° adds acc@20, @25, @30 = 3/5 each → 0.5.
+        assert!((map_yi2018(&e, 5.0, 10.0) - 0.3).abs() < 1e-12);
+        assert!((map_yi2018(&e, 5.0, 30.0) - 0.5).abs() < 1e-12);
+        // AUC on [0, 15]: the step curve is 0 on [0, 2), 1/5 on [2, 7), 2/5 on [7, 12), 3/5 on
+        // [12, 15] → (0·2 + 0.2·5 + 0.4·5 + 0.6·3)/15 = 4.8/15 = 0.32.
+        assert!((auc(&e, 15.0, 1501) - 0.32).abs() < 1e-3);
+        // On [0, 50] the 40° error counts for the last 10°: (4.8 + 0.6·25 + 0.8·10)/50 = 0.556.
+        assert!((auc(&e, 50.0, 5001) - 0.556).abs() < 1e-3);
+        // Squared translation errors with the 1e-3 step: 0.5e-3, 1.5e-3, 8.5e-3, 0.5 →
+        // acc at 1e-3 … 1e-2 = 1, 2, 2, 2, 2, 2, 2, 2, 3, 3 quarters → mAP = 21/40.
+        let t = [0.5e-3, 1.5e-3, 8.5e-3, 0.5];
+        assert!((map_yi2018(&t, 1e-3, 1e-2) - 21.0 / 40.0).abs() < 1e-12);
+        // Thresholds are inclusive: an error exactly at 5° counts at 5°.
+        assert_eq!(accuracy(&[5.0], 5.0), 1.0);
+        assert_eq!(accuracy(&[], 5.0), 0.0);
+    }
+
     #[test]
     fn summary_counts_failures_as_wrong_and_groups_per_object() {
         let ok = PoseErrors {

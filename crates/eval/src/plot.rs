@@ -39,6 +39,18 @@ pub fn plot_accuracy_curves(
     curve: Curve,
     max: f64,
 ) -> Result<(), EvalError> {
+    plot_accuracy_curves_titled(path, results, curve, max, None)
+}
+
+/// [`plot_accuracy_curves`] with a title of its own (default: "Rotation accuracy" or
+/// "Translation accuracy").
+pub fn plot_accuracy_curves_titled(
+    path: &Path,
+    results: &[MethodResult],
+    curve: Curve,
+    max: f64,
+    title: Option<&str>,
+) -> Result<(), EvalError> {
     register_font()?;
     let ext = path
         .extension()
@@ -51,12 +63,14 @@ pub fn plot_accuracy_curves(
             results,
             curve,
             max,
+            title,
         ),
         Some("svg") => draw(
             SVGBackend::new(path, size).into_drawing_area(),
             results,
             curve,
             max,
+            title,
         ),
         _ => Err(EvalError::Plot(format!(
             "{}: the plot file must end in .png or .svg",
@@ -74,19 +88,21 @@ fn draw<DB: DrawingBackend>(
     results: &[MethodResult],
     curve: Curve,
     max: f64,
+    title: Option<&str>,
 ) -> Result<(), EvalError>
 where
     DB::ErrorType: 'static,
 {
     let err = |e: DrawingAreaErrorKind<DB::ErrorType>| EvalError::Plot(e.to_string());
     root.fill(&WHITE).map_err(err)?;
-    let (title, x_label) = match curve {
+    let (title_default, x_label) = match curve {
         Curve::Rotation => ("Rotation accuracy", "rotation error threshold (degrees)"),
         Curve::TranslationSq => (
             "Translation accuracy",
             "squared translation error threshold",
         ),
     };
+    let title = title.unwrap_or(title_default);
     let mut chart = ChartBuilder::on(&root)
         .caption(title, (FONT_NAME, 22))
         .margin(16)

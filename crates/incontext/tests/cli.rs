@@ -579,10 +579,6 @@ fn a_sliver_of_object_is_object_not_found() {
 
 #[test]
 fn a_depth_map_without_the_object_is_object_not_found() {
-    if !incontext::models::SEG.available() {
-        eprintln!("NOTE: no segmentation model (models/seg-cpu.safetensors): test skipped");
-        return;
-    }
     let sc = SmallScene::new();
     let flat = sc.path("flat.png");
     ic_render::io::write_depth_png(&flat, &Image::filled(160, 120, 1.0), 0.1).unwrap();
@@ -768,10 +764,6 @@ fn eval_writes_peer_lines_for_cases_and_tables_for_a_bop_dataset() {
 // ---------------------------------------------------------------------------------------------
 // The demo, end to end.
 
-fn seg_model_available() -> bool {
-    incontext::models::SEG.available()
-}
-
 #[test]
 fn demo_finds_the_pose_and_register_on_its_files_agrees() {
     // The README's seed: the rotation error the demo reports must be under 15°.
@@ -780,7 +772,7 @@ fn demo_finds_the_pose_and_register_on_its_files_agrees() {
     let out = dir.path().join("demo");
     // Three pose hypotheses: robust to the draw of points whatever masks the shipped
     // segmentation network gives (one hypothesis is the paper's one-shot pipeline).
-    let mut args = vec![
+    let args = vec![
         "demo",
         "--seed",
         seed,
@@ -790,12 +782,11 @@ fn demo_finds_the_pose_and_register_on_its_files_agrees() {
         s(&out),
         "--json",
     ];
-    if !seg_model_available() {
-        eprintln!(
-            "NOTE: no segmentation model (models/seg-cpu.safetensors): the demo test uses --gt-mask"
-        );
-        args.push("--gt-mask");
-    }
+    // The shipped segmentation network, not the ground-truth mask.
+    assert!(
+        incontext::models::SEG.available(),
+        "models/seg-cpu.safetensors is missing"
+    );
     let o = check(&args, 0, &["incontext demo", "\"seed\":3"]);
     let report = json_stdout(&o);
     let rot = report["errors"]["rotation_deg"].as_f64().unwrap();
@@ -821,7 +812,7 @@ fn demo_finds_the_pose_and_register_on_its_files_agrees() {
         assert!(out.join(f).is_file(), "{f}");
     }
     // `register` on the demo's own files gives the same pose.
-    let mut args = vec![
+    let args = vec![
         "register".to_string(),
         "--model".into(),
         s(&out.join("model.ply")).into(),
@@ -835,9 +826,6 @@ fn demo_finds_the_pose_and_register_on_its_files_agrees() {
         "--hypotheses".into(),
         "3".into(),
     ];
-    if !seg_model_available() {
-        args.extend(["--mask".into(), s(&out.join("mask_gt.png")).into()]);
-    }
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let o = check(&args, 0, &[]);
     let a = pose_of(&report["pose"]);

@@ -64,7 +64,6 @@ impl BatchNorm1 {
     }
 }
 
-
 /// Batch normalisation for images `[B, C, H, W]`: [`BatchNorm1`] over the flattened pixels.
 #[derive(Clone, Debug)]
 pub struct BatchNorm2(BatchNorm1);

@@ -22,7 +22,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let net = trainer.net();
     for _ in 0..3 {
         let t = Instant::now();
-        let batch = PairBatch::new(&[(&x[..], &y[..])], net.config().k, &candle_core::Device::Cpu)?;
+        let batch = PairBatch::new(
+            &[(&x[..], &y[..])],
+            net.config().k,
+            &candle_core::Device::Cpu,
+        )?;
         let t_graph = t.elapsed();
         let t = Instant::now();
         let (tx, ty) = net.encode(&batch, false)?;

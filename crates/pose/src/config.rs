@@ -62,7 +62,7 @@ pub struct OtConfig {
 /// network that sends all mass to the bins reaches a low loss: measured here, the `cpu` preset
 /// collapsed into the bins within 400 iterations (correspondence accuracy 0.000, validation
 /// median 164°). `Balanced` (the default) averages the matched entries and the bin entries
-/// separately and adds the two means, so both halves of M̄ carry equal weight whatever the
+/// separately and takes the mean of the two means, so both halves of M̄ carry equal weight whatever the
 /// inlier rate.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]

@@ -47,7 +47,7 @@ pub mod transformer;
 pub use config::{Head, NetConfig, OtConfig, OtLoss, PoseConfig, TrainConfig};
 pub use error::{PoseError, Result};
 pub use estimator::{PoseEstimate, PoseEstimator};
-pub use network::{HeadOutput, Match, PairBatch, PoseNet, correspondence_accuracy, nll_loss};
 pub use ic_nn::{adam, seeded_var_builder};
+pub use network::{HeadOutput, Match, PairBatch, PoseNet, correspondence_accuracy, nll_loss};
 pub use recover::{Recovered, RecoveryOptions, Refine, recover_pose};
 pub use train::{StepStats, Trainer};

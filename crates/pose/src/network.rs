@@ -267,7 +267,7 @@ impl PoseNet {
 /// match contributes nothing). OT head: over M̄ including the bins — an unmatched observed
 /// point j counts `log P̄[M, j]`, an unmatched model point i counts `log P̄[i, N]`; with
 /// [`OtLoss::Balanced`] (the default) the matched entries and the bin entries are averaged
-/// separately and the two means added. A batch with nothing to count gives a zero loss (with
+/// separately and the loss is the mean of the two means. A batch with nothing to count gives a zero loss (with
 /// zero, finite gradients).
 pub fn nll_loss(out: &HeadOutput, assignments: &[&Assignment]) -> Result<Tensor> {
     let (m, n) = (out.model_points, out.observed_points);

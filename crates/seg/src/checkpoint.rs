@@ -46,8 +46,11 @@ pub fn read_config(path: &Path) -> Result<SegConfig> {
 /// The training state embedded in a training checkpoint.
 pub fn read_state(path: &Path) -> Result<SegTrainState> {
     let meta = ic_nn::checkpoint::read_metadata(path)?;
-    let text = meta
-        .get(STATE_KEY)
-        .ok_or_else(|| bad(path, "no training state (a weights-only checkpoint?)".into()))?;
+    let text = meta.get(STATE_KEY).ok_or_else(|| {
+        bad(
+            path,
+            "no training state (a weights-only checkpoint?)".into(),
+        )
+    })?;
     serde_json::from_str(text).map_err(|e| bad(path, format!("bad training state: {e}")))
 }

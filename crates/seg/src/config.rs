@@ -38,7 +38,10 @@ impl UNetConfig {
             ));
         }
         if !(self.bn_momentum > 0.0 && self.bn_momentum <= 1.0) {
-            return bad(format!("bn_momentum {} must be in (0, 1]", self.bn_momentum));
+            return bad(format!(
+                "bn_momentum {} must be in (0, 1]",
+                self.bn_momentum
+            ));
         }
         Ok(())
     }
@@ -194,7 +197,10 @@ impl SegConfig {
             return Err(SegError::Config("crop_radius must be positive".into()));
         }
         let t = &self.train;
-        if t.batch_size == 0 || !(t.learning_rate > 0.0) || t.render_width == 0 || t.render_height == 0
+        if t.batch_size == 0
+            || !(t.learning_rate > 0.0)
+            || t.render_width == 0
+            || t.render_height == 0
         {
             return Err(SegError::Config(
                 "batch_size, learning_rate and the render size must be positive".into(),

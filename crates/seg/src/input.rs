@@ -98,10 +98,10 @@ mod tests {
 
     #[test]
     fn prepare_is_unit_free_and_flags_invalid_pixels() {
-        let metres = DepthImage::from_vec(4, 2, vec![1.0, 2.0, 0.0, 1.0, 1.0, f32::NAN, 2.0, 1.0])
-            .unwrap();
-        let mm = DepthImage::from_vec(4, 2, metres.data.iter().map(|z| z * 1000.0).collect())
-            .unwrap();
+        let metres =
+            DepthImage::from_vec(4, 2, vec![1.0, 2.0, 0.0, 1.0, 1.0, f32::NAN, 2.0, 1.0]).unwrap();
+        let mm =
+            DepthImage::from_vec(4, 2, metres.data.iter().map(|z| z * 1000.0).collect()).unwrap();
         let a = prepare(&metres, 4, 2).unwrap();
         let b = prepare(&mm, 4, 2).unwrap();
         for (x, y) in a.iter().zip(&b) {

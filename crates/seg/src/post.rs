@@ -115,8 +115,8 @@ pub fn erode3x3(mask: &Mask) -> Mask {
     let mut out = Mask::filled(mask.width, mask.height, false);
     for y in 1..h.saturating_sub(1) {
         for x in 1..w.saturating_sub(1) {
-            out.data[y * w + x] = (y - 1..=y + 1)
-                .all(|yy| (x - 1..=x + 1).all(|xx| mask.data[yy * w + xx]));
+            out.data[y * w + x] =
+                (y - 1..=y + 1).all(|yy| (x - 1..=x + 1).all(|xx| mask.data[yy * w + xx]));
         }
     }
     out
@@ -263,7 +263,9 @@ mod tests {
         Mask::from_vec(
             w,
             h,
-            rows.iter().flat_map(|r| r.chars().map(|c| c == '#')).collect(),
+            rows.iter()
+                .flat_map(|r| r.chars().map(|c| c == '#'))
+                .collect(),
         )
         .unwrap()
     }
@@ -356,7 +358,10 @@ mod tests {
         );
         let big = morph_square(&m, 2, true);
         assert!(big.data.iter().all(|&b| b));
-        assert_eq!(rows(&morph_square(&big, 1, false)), rows(&morph_square(&m, 1, true)));
+        assert_eq!(
+            rows(&morph_square(&big, 1, false)),
+            rows(&morph_square(&m, 1, true))
+        );
     }
 
     #[test]
@@ -375,9 +380,7 @@ mod tests {
                 shifted.data[v * 12 + u + 2] = true;
             }
         }
-        let expected: Vec<bool> = (0..144)
-            .map(|i| truth.data[i] && shifted.data[i])
-            .collect();
+        let expected: Vec<bool> = (0..144).map(|i| truth.data[i] && shifted.data[i]).collect();
         let refined = refine_with_depth(&shifted, &depth, 2, 0.03);
         assert_eq!(refined.data, expected);
         // A hole in the depth is dropped, never invented.
@@ -392,6 +395,9 @@ mod tests {
         let a = mask(&["##..", "##.."]);
         let b = mask(&[".##.", ".##."]);
         assert!((iou(&a, &b) - 2.0 / 6.0).abs() < 1e-12);
-        assert_eq!(iou(&Mask::filled(2, 2, false), &Mask::filled(2, 2, false)), 1.0);
+        assert_eq!(
+            iou(&Mask::filled(2, 2, false), &Mask::filled(2, 2, false)),
+            1.0
+        );
     }
 }

@@ -46,12 +46,11 @@ impl Segmenter {
     pub fn load(path: &Path) -> Result<Segmenter> {
         let config = checkpoint::read_config(path)?;
         let device = Device::Cpu;
-        let tensors = candle_core::safetensors::load(path, &device).map_err(|e| {
-            SegError::Checkpoint {
+        let tensors =
+            candle_core::safetensors::load(path, &device).map_err(|e| SegError::Checkpoint {
                 path: path.to_path_buf(),
                 message: format!("reading the weights: {e}"),
-            }
-        })?;
+            })?;
         let vb = VarBuilder::from_tensors(tensors, DType::F32, &device);
         let net = UNet::new(vb, &config.net).map_err(|e| SegError::Checkpoint {
             path: path.to_path_buf(),

@@ -118,12 +118,11 @@ impl SegTrainer {
         let config = checkpoint::read_config(path)?;
         let state = checkpoint::read_state(path)?;
         let mut t = Self::new(config, state.seed)?;
-        let tensors = candle_core::safetensors::load(path, &t.device).map_err(|e| {
-            SegError::Checkpoint {
+        let tensors =
+            candle_core::safetensors::load(path, &t.device).map_err(|e| SegError::Checkpoint {
                 path: path.to_path_buf(),
                 message: e.to_string(),
-            }
-        })?;
+            })?;
         ic_nn::checkpoint::load_into_varmap(&t.varmap, &tensors, path)?;
         t.adam
             .load_state(&tensors, state.adam_step)
@@ -205,7 +204,11 @@ impl SegTrainer {
         let grads = loss.backward()?;
         self.adam.step(&grads)?;
         self.iteration += 1;
-        let pred = logits.detach().gt(0.0)?.to_dtype(DType::F32)?.flatten_from(1)?;
+        let pred = logits
+            .detach()
+            .gt(0.0)?
+            .to_dtype(DType::F32)?
+            .flatten_from(1)?;
         let yt = y.flatten_from(1)?;
         let inter = (&pred * &yt)?.sum(1)?.to_vec1::<f32>()?;
         let union = ((&pred + &yt)?.gt(0.0)?.to_dtype(DType::F32)?)
@@ -248,7 +251,11 @@ impl SegTrainer {
     pub fn save(&self, path: &Path) -> Result<()> {
         let mut tensors = ic_nn::checkpoint::varmap_tensors(&self.varmap);
         tensors.extend(self.adam.state());
-        Ok(ic_nn::checkpoint::save(path, &tensors, self.metadata(true)?)?)
+        Ok(ic_nn::checkpoint::save(
+            path,
+            &tensors,
+            self.metadata(true)?,
+        )?)
     }
 
     /// Saves the weights and configuration only (what inference needs; atomically).

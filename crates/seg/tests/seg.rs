@@ -65,7 +65,11 @@ fn pooling_and_upsampling_match_candles_ops() {
     let dev = Device::Cpu;
     let x = Tensor::randn(0f32, 1.0, (2, 3, 6, 8), &dev).unwrap();
     check_close(&max_pool2(&x).unwrap(), &x.max_pool2d(2).unwrap(), 0.0);
-    check_close(&upsample2(&x).unwrap(), &x.upsample_nearest2d(12, 16).unwrap(), 0.0);
+    check_close(
+        &upsample2(&x).unwrap(),
+        &x.upsample_nearest2d(12, 16).unwrap(),
+        0.0,
+    );
 }
 
 #[test]
@@ -96,7 +100,14 @@ fn every_parameter_receives_a_gradient() {
         seen += 1;
         let g = grads
             .get(var.as_tensor())
-            .map(|g| g.abs().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap())
+            .map(|g| {
+                g.abs()
+                    .unwrap()
+                    .sum_all()
+                    .unwrap()
+                    .to_scalar::<f32>()
+                    .unwrap()
+            })
             .unwrap_or(0.0);
         assert!(g.is_finite() && g > 0.0, "{name}: gradient {g}");
     }
@@ -169,7 +180,10 @@ fn resumed_run_matches_uninterrupted_run() {
     for _ in 0..2 {
         resumed.step(&ex).unwrap();
     }
-    assert_eq!(outputs(&resumed.segmenter()), outputs(&straight.segmenter()));
+    assert_eq!(
+        outputs(&resumed.segmenter()),
+        outputs(&straight.segmenter())
+    );
 }
 
 #[test]
@@ -185,7 +199,10 @@ fn loading_something_else_is_a_clear_checkpoint_error() {
     let t = Tensor::new(&[1f32], &Device::Cpu).unwrap();
     ic_nn::checkpoint::save(&other, &[("w".into(), t)], HashMap::new()).unwrap();
     let e = Segmenter::load(&other).unwrap_err();
-    assert!(e.to_string().contains("not a segmentation checkpoint"), "{e}");
+    assert!(
+        e.to_string().contains("not a segmentation checkpoint"),
+        "{e}"
+    );
     // Our configuration, weights of another shape.
     let trainer = SegTrainer::new(SegConfig::tiny(), 1).unwrap();
     let good = dir.path().join("good.safetensors");

@@ -1,0 +1,442 @@
+//! `cargo xtask bench`: accuracy and speed of our methods beside Open3D's, on fixed case sets,
+//! written up as `docs/results.md` and `docs/results.json` (issue 7).
+//!
+//! 1. cases — the object-alone and room test sets exported from the blob test split (ids
+//!    800–999) with a fixed seed into `<work>/cases-{noback,room}` (`bench_cases`; reused when
+//!    the manifest matches);
+//! 2. ours — `incontext eval --cases DIR --method M --out FILE` for the four methods, and on the
+//!    room set the same with `--gt-mask` (the upper bound) when the CLI has it (`bench_run`);
+//! 3. peers (`--peers`) — `benches/peers/open3d_peers.py` on the same folders, and its timing
+//!    mode;
+//! 4. speed — registration time at 512/1024/2048 points, segmentation at 640×480, renderer
+//!    views/s and training pairs/hour, measured in this process (`bench_speed`);
+//! 5. report — every JSONL file scored by `ic_eval::cases`, tables, accuracy plots, the
+//!    machine and the command (`bench_report`).
+//!
+//! `--quick` is the small version CI can afford (20 + 10 cases, written under
+//! `target/bench-quick/`). `--criterion [NAMES]` (or just `cargo xtask bench NAME`) runs the
+//! criterion benchmarks of `benches/` instead, as before.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::bench_cases::{self, CaseSet, Objects, Set};
+use crate::bench_report::{self, Report};
+use crate::bench_run::{self, MethodRun, RunStatus};
+use crate::bench_speed;
+
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// Criterion benchmarks to run (file stems under benches/); naming any implies --criterion.
+    pub names: Vec<String>,
+    /// Run the criterion benchmarks (all, or NAMES) and print medians with ratios to the in-run
+    /// baseline (target/bench-summary.json), instead of the accuracy and speed bench.
+    #[arg(long)]
+    pub criterion: bool,
+    /// The small version (20 object-alone cases, 10 room scenes, 2 timing repeats) that CI
+    /// runs; writes under target/bench-quick/ instead of docs/.
+    #[arg(long)]
+    pub quick: bool,
+    /// Also run the Open3D peers (benches/peers; needs target/peers-venv, see its README).
+    #[arg(long)]
+    pub peers: bool,
+    /// Where results.md, results.json and results/ (plots) go. Default: docs/, or
+    /// target/bench-quick/ with --quick.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Folder for the cases and the raw result files. Default: target/bench, or
+    /// target/bench-quick with --quick.
+    #[arg(long)]
+    pub work: Option<PathBuf>,
+    /// Flat folder of object meshes split by id (0–799 train, 800–999 test). Default:
+    /// $INCONTEXT_OBJECTS, else ../shared/data/objects/blobs next to the workspace; with --quick,
+    /// procedural objects when neither exists.
+    #[arg(long)]
+    pub objects: Option<PathBuf>,
+    /// Seed of the case sets, our CLI's point sampling, the peers' RANSAC and the timing pairs.
+    #[arg(long, default_value_t = 2021)]
+    pub seed: u64,
+    /// Object-alone cases (default 500, quick 20).
+    #[arg(long)]
+    pub noback_count: Option<u64>,
+    /// Room scenes (default 300, quick 10).
+    #[arg(long)]
+    pub room_count: Option<u64>,
+    /// Threads for every method, ours and Open3D's, and for the timings.
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
+    /// Timing repeats after one warm-up (default 10, quick 2).
+    #[arg(long)]
+    pub repeats: Option<usize>,
+    /// Timed training steps per head (default 5, quick 1).
+    #[arg(long)]
+    pub train_steps: Option<usize>,
+    /// The incontext binary. Default: `cargo build -p incontext`, then target/debug/incontext.
+    #[arg(long)]
+    pub incontext: Option<PathBuf>,
+    /// Python with open3d. Default: target/peers-venv/bin/python.
+    #[arg(long)]
+    pub python: Option<PathBuf>,
+    /// Reuse result files of an earlier run that hold a line for every case, instead of
+    /// running those methods again.
+    #[arg(long)]
+    pub resume: bool,
+    /// Skip the speed stage.
+    #[arg(long)]
+    pub no_speed: bool,
+    /// Fail (after writing the report) when `incontext eval --cases` is unusable or a method
+    /// that could run did not: what CI uses so the bench cannot rot. Methods whose model file is
+    /// absent do not count.
+    #[arg(long)]
+    pub strict: bool,
+}
+
+/// Everything a run is, resolved from the arguments; printed first and saved in results.json.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Config {
+    pub quick: bool,
+    pub peers: bool,
+    pub seed: u64,
+    pub noback_count: u64,
+    pub room_count: u64,
+    pub threads: usize,
+    pub repeats: usize,
+    pub train_steps: usize,
+    pub out: PathBuf,
+    pub work: PathBuf,
+    pub objects: serde_json::Value,
+    pub speed: bool,
+    pub resume: bool,
+}
+
+pub fn progress_bar(len: u64, what: &str) -> ProgressBar {
+    let bar = if len == 0 {
+        ProgressBar::new_spinner()
+    } else {
+        ProgressBar::new(len)
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{prefix:>16} [{elapsed_precise}] {wide_bar} {pos}/{len} {msg} (eta {eta})",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.set_prefix(what.to_string());
+    bar
+}
+
+/// `path` relative to the workspace root when it lies inside it (for reports that are
+/// committed), else as given.
+pub fn rel(path: &Path) -> PathBuf {
+    let root = crate::workspace_root();
+    let root = root.canonicalize().unwrap_or(root);
+    path.strip_prefix(&root)
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|_| path.to_path_buf())
+}
+
+/// Writes `bytes` to `path` through a temporary file and a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    ic_geometry::io::write_atomic_with(path, |w| std::io::Write::write_all(w, bytes), |e| e)
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+fn default_objects(root: &Path, given: Option<&Path>, quick: bool) -> Result<Objects> {
+    let candidate = given
+        .map(Path::to_path_buf)
+        .or_else(|| std::env::var_os("INCONTEXT_OBJECTS").map(PathBuf::from))
+        .unwrap_or_else(|| root.join("../shared/data/objects/blobs"));
+    if candidate.is_dir() {
+        return Ok(Objects::Folder(
+            candidate.canonicalize().unwrap_or(candidate),
+        ));
+    }
+    if given.is_some() {
+        bail!("--objects {}: not a folder", candidate.display());
+    }
+    if quick {
+        tracing::warn!(
+            "{} not found: the quick bench uses 200 procedural objects instead of the blobs",
+            candidate.display()
+        );
+        return Ok(Objects::Procedural(200));
+    }
+    bail!(
+        "the blob meshes are not at {} (pass --objects DIR or set INCONTEXT_OBJECTS; \
+         /work/shared/data/README.md says how to rebuild them)",
+        candidate.display()
+    )
+}
+
+pub fn run(args: BenchArgs) -> Result<()> {
+    if args.criterion || !args.names.is_empty() {
+        return crate::criterion_bench(&args.names);
+    }
+    // Before any thread exists: candle and rayon read it once.
+    crate::pose::set_threads(Some(args.threads));
+    crate::init_tracing();
+    let started = Instant::now();
+    let root = crate::workspace_root();
+    let quick = args.quick;
+    let objects = default_objects(&root, args.objects.as_deref(), quick)?;
+    let work = args.work.clone().unwrap_or_else(|| {
+        root.join(if quick {
+            "target/bench-quick"
+        } else {
+            "target/bench"
+        })
+    });
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| root.join(if quick { "target/bench-quick" } else { "docs" }));
+    let config = Config {
+        quick,
+        peers: args.peers,
+        seed: args.seed,
+        noback_count: args.noback_count.unwrap_or(if quick { 20 } else { 500 }),
+        room_count: args.room_count.unwrap_or(if quick { 10 } else { 300 }),
+        threads: args.threads.max(1),
+        repeats: args.repeats.unwrap_or(if quick { 2 } else { 10 }),
+        train_steps: args.train_steps.unwrap_or(if quick { 1 } else { 5 }),
+        out: out.clone(),
+        work: work.clone(),
+        objects: objects.describe(),
+        speed: !args.no_speed,
+        resume: args.resume,
+    };
+    if config.noback_count == 0 || config.room_count == 0 {
+        bail!("--noback-count and --room-count must be ≥ 1");
+    }
+    println!(
+        "bench seed {} config {}",
+        config.seed,
+        serde_json::to_string(&config)?
+    );
+    let mut report = Report::start(&root, &config);
+
+    // 1. Cases.
+    let mut sets: Vec<CaseSet> = Vec::new();
+    for set in Set::ALL {
+        let count = match set {
+            Set::Noback => config.noback_count,
+            Set::Room => config.room_count,
+        };
+        let t0 = Instant::now();
+        let dir = work.join(format!("cases-{}", set.name()));
+        let cs = bench_cases::ensure(set, &objects, config.seed, count, &dir, config.threads)?;
+        report.stage(&format!("cases {}", set.name()), t0.elapsed().as_secs_f64());
+        sets.push(cs);
+    }
+
+    // 2. Ours.
+    let mut runs: Vec<MethodRun> = Vec::new();
+    let t0 = Instant::now();
+    let cli = bench_run::probe_cli(&root, args.incontext.as_deref());
+    if let Some(why) = &cli.unusable {
+        tracing::warn!("our methods will be reported as missing: {why}");
+    }
+    for cs in &sets {
+        let dir = work.join("runs").join(cs.set.name());
+        runs.extend(bench_run::run_ours(
+            &root,
+            &cli,
+            cs,
+            &dir,
+            config.threads,
+            config.seed,
+            config.resume,
+        )?);
+    }
+    report.cli = Some(bench_run::Cli {
+        path: rel(&cli.path),
+        ..cli
+    });
+    report.stage("ours", t0.elapsed().as_secs_f64());
+
+    // 3. Peers.
+    let mut python = None;
+    if config.peers {
+        let t0 = Instant::now();
+        match bench_run::probe_python(&root, args.python.as_deref()) {
+            Ok((py, version)) => {
+                report.open3d_version = Some(version);
+                for cs in &sets {
+                    let dir = work.join("runs").join(cs.set.name());
+                    runs.extend(bench_run::run_peers(
+                        &root,
+                        &py,
+                        cs,
+                        &dir,
+                        config.threads,
+                        config.seed,
+                        config.resume,
+                    )?);
+                }
+                python = Some(py);
+            }
+            Err(why) => {
+                let note = format!(
+                    "Open3D peers skipped: {why}. Install them with: {}",
+                    bench_run::PEERS_INSTALL
+                );
+                eprintln!("{note}");
+                report.notes.push(note);
+                for cs in &sets {
+                    for m in bench_run::PEER_METHODS {
+                        runs.push(MethodRun {
+                            set: cs.set,
+                            label: format!("o3d-{m}"),
+                            method: format!("o3d-{m}"),
+                            peer: true,
+                            gt_mask: false,
+                            status: RunStatus::Missing {
+                                reason: format!("the peers' Python is not set up ({why})"),
+                            },
+                        });
+                    }
+                }
+            }
+        }
+        report.stage("peers", t0.elapsed().as_secs_f64());
+    } else {
+        report.notes.push(
+            "Open3D peers were not run (pass --peers): the tables hold our methods only.".into(),
+        );
+    }
+
+    // 4. Speed.
+    if config.speed {
+        let t0 = Instant::now();
+        let (noback, room) = (&sets[0], &sets[1]);
+        report.speed = Some(bench_speed::measure(
+            &root,
+            noback,
+            room,
+            &objects,
+            config.seed,
+            config.threads,
+            config.repeats,
+            config.train_steps,
+        )?);
+        if let Some(py) = &python {
+            let file = work.join("runs/open3d-timing.json");
+            match bench_run::run_peer_timing(
+                &root,
+                py,
+                noback,
+                &file,
+                &bench_speed::SIZES,
+                config.repeats,
+                config.threads,
+                config.seed,
+            ) {
+                Ok(v) => report.open3d_timing = Some(v),
+                Err(e) => {
+                    tracing::error!("Open3D timing failed: {e}");
+                    report.notes.push(format!("Open3D timing failed: {e}"));
+                }
+            }
+        }
+        report.stage("speed", t0.elapsed().as_secs_f64());
+    }
+
+    // 5. Score and write.
+    let t0 = Instant::now();
+    report.score(&sets, runs)?;
+    report.stage("score", t0.elapsed().as_secs_f64());
+    report.total_seconds = started.elapsed().as_secs_f64();
+    let written = bench_report::write(&report, &out)?;
+    for set in &report.sets {
+        println!("\n## {} ({} cases)\n", set.set.title(), set.count);
+        println!("{}", ic_eval::cases::markdown_cases_table(&set.scores));
+        for m in &set.missing {
+            println!("- {}: {}", m.0, m.1);
+        }
+    }
+    let problems = strict_problems(&report);
+    for p in &problems {
+        eprintln!("bench problem: {p}");
+    }
+    if args.strict && !problems.is_empty() {
+        bail!(
+            "--strict: {} problem(s) (listed above; the report was written)",
+            problems.len()
+        );
+    }
+    println!(
+        "\nbench took {:.0} s; wrote {}",
+        report.total_seconds,
+        written
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    Ok(())
+}
+
+/// What `--strict` refuses: an unusable CLI, a method that failed to run or to be scored,
+/// peers that were asked for and could not run, a set without any of our results.
+fn strict_problems(report: &Report) -> Vec<String> {
+    let mut out = Vec::new();
+    if let Some(why) = report.cli.as_ref().and_then(|c| c.unusable.as_ref()) {
+        out.push(why.clone());
+    }
+    for set in &report.sets {
+        for (label, reason) in &set.missing {
+            let absent_model = reason.starts_with("not run:") && reason.contains(" is absent");
+            let cli_reason = report
+                .cli
+                .as_ref()
+                .and_then(|c| c.unusable.as_ref())
+                .is_some_and(|w| reason.contains(w.as_str()));
+            if !absent_model && !cli_reason {
+                out.push(format!("{} on {}: {reason}", label, set.set.name()));
+            }
+        }
+        if !set.scores.iter().any(|m| m.method().starts_with("ours-")) {
+            out.push(format!("no result of ours on the {} set", set.set.name()));
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+pub mod tests {
+    use std::path::{Path, PathBuf};
+
+    /// A temporary folder removed on drop (xtask has no tempfile).
+    pub struct TempDir(PathBuf);
+
+    impl TempDir {
+        pub fn new(tag: &str) -> Self {
+            use std::sync::atomic::{AtomicU64, Ordering};
+            static N: AtomicU64 = AtomicU64::new(0);
+            let p = std::env::temp_dir().join(format!(
+                "xtask-{tag}-{}-{}",
+                std::process::id(),
+                N.fetch_add(1, Ordering::Relaxed)
+            ));
+            std::fs::create_dir_all(&p).unwrap();
+            TempDir(p)
+        }
+
+        pub fn path(&self) -> &Path {
+            &self.0
+        }
+    }
+
+    impl Drop for TempDir {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}

@@ -1,0 +1,464 @@
+//! Stages 2 and 3 of `cargo xtask bench`: our methods through `incontext eval --cases` and the
+//! Open3D peers through `benches/peers/open3d_peers.py`, each as a subprocess writing JSONL.
+//!
+//! Nothing here scores: the files go to `ic_eval::cases`. A method that cannot run (its model
+//! file is absent, the CLI lacks the command, Python lacks Open3D) is recorded with the reason
+//! and the bench goes on.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+
+use crate::bench_cases::{CaseSet, Set};
+
+/// Our methods, as `incontext eval --method` names them, with the head they need.
+pub const OUR_METHODS: [(&str, &str); 4] = [
+    ("ours-softmax", "softmax"),
+    ("ours-softmax-icp", "softmax"),
+    ("ours-ot", "ot"),
+    ("ours-ot-icp", "ot"),
+];
+
+/// Open3D methods of the peers' script (their lines say `o3d-<name>`).
+pub const PEER_METHODS: [&str; 5] = [
+    "icp-p2p",
+    "icp-p2l",
+    "fpfh-ransac",
+    "fpfh-ransac-icp",
+    "fgr",
+];
+
+/// The shipped model a head uses, relative to the workspace root.
+pub fn pose_model(head: &str) -> PathBuf {
+    PathBuf::from(format!("models/pose-cpu-{head}.safetensors"))
+}
+
+pub const SEG_MODEL: &str = "models/seg-cpu.safetensors";
+
+/// How one method on one set ended up.
+#[derive(Clone, Debug, serde::Serialize)]
+#[serde(tag = "status", rename_all = "snake_case")]
+pub enum RunStatus {
+    /// Ran (or reused); the lines are in `file`.
+    Ran {
+        file: PathBuf,
+        wall_seconds: f64,
+        reused: bool,
+    },
+    /// Not run, and why.
+    Missing { reason: String },
+    /// Started but did not finish; the reason (and whatever lines it wrote are not scored).
+    Failed { reason: String },
+}
+
+/// One method (label) on one set.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct MethodRun {
+    pub set: Set,
+    /// The name in the tables (ours with the ground-truth mask get " (gt mask)").
+    pub label: String,
+    /// The method name in the JSONL lines.
+    pub method: String,
+    pub peer: bool,
+    pub gt_mask: bool,
+    #[serde(flatten)]
+    pub status: RunStatus,
+}
+
+/// What the `incontext` binary can do.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Cli {
+    pub path: PathBuf,
+    /// `None` when `incontext eval --cases` is usable; else why not.
+    pub unusable: Option<String>,
+    pub gt_mask: bool,
+    /// Whether the CLI takes the global `--seed` and `--threads`.
+    pub seed_flag: bool,
+    pub threads_flag: bool,
+}
+
+/// Builds (unless `given`) and probes the `incontext` binary.
+pub fn probe_cli(root: &Path, given: Option<&Path>) -> Cli {
+    let path = match given {
+        Some(p) => p.to_path_buf(),
+        None => {
+            let bin = root.join("target/debug/incontext");
+            if let Err(e) = crate::cargo(&["build", "-p", "incontext", "--bin", "incontext"]) {
+                return Cli {
+                    path: bin,
+                    unusable: Some(format!("`cargo build -p incontext` failed: {e:#}")),
+                    gt_mask: false,
+                    seed_flag: false,
+                    threads_flag: false,
+                };
+            }
+            bin
+        }
+    };
+    let out = Command::new(&path)
+        .args(["eval", "--help"])
+        .stdin(Stdio::null())
+        .output();
+    match out {
+        Err(e) => Cli {
+            unusable: Some(format!("{} cannot be run: {e}", path.display())),
+            path,
+            gt_mask: false,
+            seed_flag: false,
+            threads_flag: false,
+        },
+        Ok(o) => {
+            let help = String::from_utf8_lossy(&o.stdout).into_owned()
+                + &String::from_utf8_lossy(&o.stderr);
+            let usable = o.status.success() && help.contains("--cases");
+            Cli {
+                unusable: (!usable).then(|| {
+                    format!(
+                        "`{} eval --cases` is not available yet (the CLI has no eval command \
+                         with --cases)",
+                        path.display()
+                    )
+                }),
+                gt_mask: usable && help.contains("--gt-mask"),
+                seed_flag: help.contains("--seed"),
+                threads_flag: help.contains("--threads"),
+                path,
+            }
+        }
+    }
+}
+
+/// Counts non-empty lines (progress, and whether a result file is complete).
+pub fn count_lines(path: &Path) -> usize {
+    std::fs::read_to_string(path)
+        .map(|t| t.lines().filter(|l| !l.trim().is_empty()).count())
+        .unwrap_or(0)
+}
+
+/// Runs `cmd` with stdout+stderr going to `log`, showing a bar of the lines in `out` (of
+/// `expected`). Returns the wall time, or the failure with the log's tail.
+fn run_with_progress(
+    mut cmd: Command,
+    log: &Path,
+    out: &Path,
+    expected: u64,
+    label: &str,
+) -> Result<f64, String> {
+    let log_file = std::fs::File::create(log).map_err(|e| format!("{}: {e}", log.display()))?;
+    let err_file = log_file
+        .try_clone()
+        .map_err(|e| format!("{}: {e}", log.display()))?;
+    cmd.stdin(Stdio::null()).stdout(log_file).stderr(err_file);
+    tracing::debug!(?cmd, "running");
+    let start = Instant::now();
+    let mut child = cmd.spawn().map_err(|e| format!("cannot start: {e}"))?;
+    let bar = crate::bench::progress_bar(expected, label);
+    let status = loop {
+        match child.try_wait() {
+            Ok(Some(s)) => break s,
+            Ok(None) => {
+                bar.set_position(count_lines(out) as u64);
+                std::thread::sleep(Duration::from_millis(500));
+            }
+            Err(e) => return Err(format!("waiting for the process: {e}")),
+        }
+    };
+    bar.set_position(count_lines(out) as u64);
+    bar.finish_and_clear();
+    let wall = start.elapsed().as_secs_f64();
+    if status.success() {
+        Ok(wall)
+    } else {
+        Err(format!(
+            "exited with {status}; last lines of {}:\n{}",
+            log.display(),
+            tail(log, 8)
+        ))
+    }
+}
+
+fn tail(path: &Path, lines: usize) -> String {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let v: Vec<&str> = text.lines().collect();
+    v[v.len().saturating_sub(lines)..].join("\n")
+}
+
+/// Runs our four methods on `cases` (and, for the room set, the same with the ground-truth
+/// mask when the CLI supports it).
+pub fn run_ours(
+    root: &Path,
+    cli: &Cli,
+    cases: &CaseSet,
+    runs: &Path,
+    threads: usize,
+    seed: u64,
+    resume: bool,
+) -> Result<Vec<MethodRun>> {
+    let mut out = Vec::new();
+    let variants: &[bool] = if cases.set == Set::Room {
+        &[false, true]
+    } else {
+        &[false]
+    };
+    std::fs::create_dir_all(runs).with_context(|| format!("creating {}", runs.display()))?;
+    for &gt_mask in variants {
+        for (method, head) in OUR_METHODS {
+            let label = if gt_mask {
+                format!("{method} (gt mask)")
+            } else {
+                method.to_string()
+            };
+            let mut run = MethodRun {
+                set: cases.set,
+                label: label.clone(),
+                method: method.to_string(),
+                peer: false,
+                gt_mask,
+                status: RunStatus::Missing {
+                    reason: String::new(),
+                },
+            };
+            let model = pose_model(head);
+            let missing = if let Some(why) = &cli.unusable {
+                Some(why.clone())
+            } else if !root.join(&model).is_file() {
+                Some(format!("{} is absent", model.display()))
+            } else if gt_mask && !cli.gt_mask {
+                Some("`incontext eval` has no --gt-mask option yet".into())
+            } else if cases.set == Set::Room && !gt_mask && !root.join(SEG_MODEL).is_file() {
+                Some(format!(
+                    "{SEG_MODEL} is absent (the full pipeline segments first)"
+                ))
+            } else {
+                None
+            };
+            if let Some(reason) = missing {
+                tracing::warn!(set = cases.set.name(), method = %label, "{reason}");
+                run.status = RunStatus::Missing { reason };
+                out.push(run);
+                continue;
+            }
+            let stem = if gt_mask {
+                format!("{method}-gt-mask")
+            } else {
+                method.to_string()
+            };
+            let file = runs.join(format!("{stem}.jsonl"));
+            if resume && count_lines(&file) as u64 == cases.count {
+                tracing::info!(set = cases.set.name(), method = %label, file = %file.display(), "reusing");
+                run.status = RunStatus::Ran {
+                    file,
+                    wall_seconds: 0.0,
+                    reused: true,
+                };
+                out.push(run);
+                continue;
+            }
+            let _ = std::fs::remove_file(&file);
+            let mut cmd = Command::new(&cli.path);
+            cmd.current_dir(root)
+                .env("RAYON_NUM_THREADS", threads.to_string());
+            if cli.seed_flag {
+                cmd.args(["--seed", &seed.to_string()]);
+            }
+            if cli.threads_flag {
+                cmd.args(["--threads", &threads.to_string()]);
+            }
+            cmd.arg("eval")
+                .arg("--cases")
+                .arg(&cases.dir)
+                .args(["--method", method])
+                .arg("--out")
+                .arg(&file);
+            if gt_mask {
+                cmd.arg("--gt-mask");
+            }
+            eprintln!(
+                "== {} {}: incontext eval --method {method}{}",
+                cases.set.name(),
+                label,
+                if gt_mask { " --gt-mask" } else { "" }
+            );
+            run.status = match run_with_progress(
+                cmd,
+                &runs.join(format!("{stem}.log")),
+                &file,
+                cases.count,
+                &format!("{} {label}", cases.set.name()),
+            ) {
+                Ok(wall) => RunStatus::Ran {
+                    file,
+                    wall_seconds: wall,
+                    reused: false,
+                },
+                Err(reason) => {
+                    tracing::error!(set = cases.set.name(), method = %label, "{reason}");
+                    RunStatus::Failed { reason }
+                }
+            };
+            out.push(run);
+        }
+    }
+    Ok(out)
+}
+
+/// The Python that runs the peers, if it can import open3d; else the reason.
+pub fn probe_python(root: &Path, given: Option<&Path>) -> Result<(PathBuf, String), String> {
+    let python = given
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| root.join("target/peers-venv/bin/python"));
+    if !python.exists() {
+        return Err(format!("{} does not exist", python.display()));
+    }
+    match Command::new(&python)
+        .args(["-c", "import open3d, sys; print(open3d.__version__)"])
+        .stdin(Stdio::null())
+        .output()
+    {
+        Ok(o) if o.status.success() => Ok((
+            python,
+            String::from_utf8_lossy(&o.stdout).trim().to_string(),
+        )),
+        Ok(o) => Err(format!(
+            "{} cannot import open3d: {}",
+            python.display(),
+            String::from_utf8_lossy(&o.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
+        )),
+        Err(e) => Err(format!("{} cannot be run: {e}", python.display())),
+    }
+}
+
+/// The command that installs the peers' environment.
+pub const PEERS_INSTALL: &str = "python3 -m venv target/peers-venv && \
+    target/peers-venv/bin/pip install -r benches/peers/requirements.txt \
+    (on a minimal Debian also: apt-get install libusb-1.0-0)";
+
+/// Runs the five Open3D methods on `cases` (one process, one file), then the script's --check.
+pub fn run_peers(
+    root: &Path,
+    python: &Path,
+    cases: &CaseSet,
+    runs: &Path,
+    threads: usize,
+    seed: u64,
+    resume: bool,
+) -> Result<Vec<MethodRun>> {
+    std::fs::create_dir_all(runs).with_context(|| format!("creating {}", runs.display()))?;
+    let file = runs.join("open3d.jsonl");
+    let script = root.join("benches/peers/open3d_peers.py");
+    let expected = cases.count * PEER_METHODS.len() as u64;
+    let reused = resume && count_lines(&file) as u64 == expected;
+    let status = if reused {
+        tracing::info!(set = cases.set.name(), file = %file.display(), "reusing the Open3D results");
+        Ok(0.0)
+    } else {
+        let mut cmd = Command::new(python);
+        cmd.current_dir(root)
+            .arg(&script)
+            .arg("--cases")
+            .arg(&cases.dir)
+            .arg("--out")
+            .arg(&file)
+            .args(["--threads", &threads.to_string()])
+            .args(["--seed", &seed.to_string()])
+            .args(["--max-target-points", "50000"]);
+        if resume {
+            cmd.arg("--resume");
+        }
+        eprintln!(
+            "== {} Open3D peers ({})",
+            cases.set.name(),
+            PEER_METHODS.join(", ")
+        );
+        run_with_progress(
+            cmd,
+            &runs.join("open3d.log"),
+            &file,
+            expected,
+            &format!("{} open3d", cases.set.name()),
+        )
+    };
+    let status = status.and_then(|wall| {
+        let o = Command::new(python)
+            .current_dir(root)
+            .arg(&script)
+            .arg("--check")
+            .arg("--cases")
+            .arg(&cases.dir)
+            .arg("--out")
+            .arg(&file)
+            .stdin(Stdio::null())
+            .output()
+            .map_err(|e| format!("--check cannot start: {e}"))?;
+        if o.status.success() {
+            Ok(wall)
+        } else {
+            Err(format!(
+                "--check failed:\n{}",
+                String::from_utf8_lossy(&o.stdout)
+            ))
+        }
+    });
+    Ok(PEER_METHODS
+        .iter()
+        .map(|m| MethodRun {
+            set: cases.set,
+            label: format!("o3d-{m}"),
+            method: format!("o3d-{m}"),
+            peer: true,
+            gt_mask: false,
+            status: match &status {
+                Ok(wall) => RunStatus::Ran {
+                    file: file.clone(),
+                    wall_seconds: *wall,
+                    reused,
+                },
+                Err(reason) => RunStatus::Failed {
+                    reason: reason.clone(),
+                },
+            },
+        })
+        .collect())
+}
+
+/// Open3D's timing mode on the first case of `cases` resampled to each size; the parsed JSON.
+#[allow(clippy::too_many_arguments)]
+pub fn run_peer_timing(
+    root: &Path,
+    python: &Path,
+    cases: &CaseSet,
+    out: &Path,
+    sizes: &[usize],
+    repeats: usize,
+    threads: usize,
+    seed: u64,
+) -> Result<serde_json::Value, String> {
+    let first = cases.dir.join("case_00000");
+    let sizes_arg = sizes
+        .iter()
+        .map(|s| s.to_string())
+        .collect::<Vec<_>>()
+        .join(",");
+    let mut cmd = Command::new(python);
+    cmd.current_dir(root)
+        .arg(root.join("benches/peers/open3d_peers.py"))
+        .arg("--timing")
+        .args(["--points", &sizes_arg])
+        .args(["--repeats", &repeats.to_string()])
+        .args(["--threads", &threads.to_string()])
+        .args(["--seed", &seed.to_string()])
+        .arg("--cases")
+        .arg(&first)
+        .arg("--out")
+        .arg(out);
+    eprintln!("== Open3D timing at {sizes_arg} points, {repeats} repeats");
+    let log = crate::bench_cases::sibling(out, "log");
+    run_with_progress(cmd, &log, out, 0, "open3d timing")?;
+    let text = std::fs::read_to_string(out).map_err(|e| format!("{}: {e}", out.display()))?;
+    serde_json::from_str(&text).map_err(|e| format!("{}: {e}", out.display()))
+}

@@ -1,0 +1,436 @@
+//! Stage 4 of `cargo xtask bench`: speed, measured in this process on this machine.
+//!
+//! - registration time of ours at 512/1024/2048 points (the paper's Table 3): the first
+//!   object-alone case's source and target resampled to n points each (random subset, or
+//!   repeats with 0.005 jitter when a cloud is smaller), `PoseEstimator::estimate` with and
+//!   without ICP, one warm-up then `repeats` runs — the same pair and protocol as the peers'
+//!   `--timing --cases` mode;
+//! - segmentation of one 640×480 depth map (the first room case);
+//! - CPU renderer views/s: a room scene at 640×480 and the object alone at 160×120;
+//! - training pairs/hour: a few real `Trainer::step`s of the `cpu` preset per head on samples
+//!   rendered from training objects, alone and with the sample rendering added (one thread).
+//!
+//! A model file that is absent is replaced by an untrained network of the same preset, and
+//! the row says so: the time does not depend on the weights (ICP's iteration count can).
+
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use ic_data::{ObjectSampleConfig, ObjectSampleGenerator, RoomSampleConfig, Split};
+use ic_geometry::glam::Vec3;
+use ic_geometry::{Intrinsics, ViewSphere};
+use ic_pose::{Head, PoseConfig, PoseEstimator, Refine, Trainer};
+use ic_render::{Background, CpuRenderer, Renderer, SceneBuilder, SceneConfig};
+use serde::Serialize;
+
+use crate::bench_cases::{CaseSet, Objects};
+use crate::bench_run::{SEG_MODEL, pose_model};
+
+/// Sizes of the paper's Table 3.
+pub const SIZES: [usize; 3] = [512, 1024, 2048];
+
+/// A timed quantity: median and every run (seconds).
+#[derive(Clone, Debug, Serialize)]
+pub struct Timed {
+    pub label: String,
+    pub median_seconds: Option<f64>,
+    pub runs: Vec<f64>,
+    /// E.g. "untrained weights (model file absent)".
+    pub note: Option<String>,
+    pub error: Option<String>,
+}
+
+/// Registration time of one method at one size.
+#[derive(Clone, Debug, Serialize)]
+pub struct RegTiming {
+    pub method: String,
+    pub points: usize,
+    #[serde(flatten)]
+    pub timed: Timed,
+}
+
+/// Training throughput of one head.
+#[derive(Clone, Debug, Serialize)]
+pub struct TrainTiming {
+    pub head: String,
+    pub batch: usize,
+    pub model_points: usize,
+    pub observed_points: usize,
+    pub step: Timed,
+    pub sample: Timed,
+    /// batch · 3600 / median step seconds.
+    pub pairs_per_hour_network: Option<f64>,
+    /// batch · 3600 / (median step + batch · median sample seconds): one thread rendering its
+    /// own samples.
+    pub pairs_per_hour_with_rendering: Option<f64>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Speed {
+    pub threads: usize,
+    pub repeats: usize,
+    pub pair: String,
+    pub ours: Vec<RegTiming>,
+    pub segmentation: Timed,
+    pub render: Vec<Timed>,
+    pub training: Vec<TrainTiming>,
+}
+
+/// SplitMix64: a tiny seeded generator for resampling (xtask has no `rand`).
+pub struct SplitMix(pub u64);
+
+impl SplitMix {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    fn below(&mut self, n: usize) -> usize {
+        (self.next_u64() % n as u64) as usize
+    }
+
+    fn unit(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    fn normal(&mut self) -> f32 {
+        let (u, v) = (self.unit().max(1e-300), self.unit());
+        ((-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()) as f32
+    }
+}
+
+/// Exactly `n` points: a random subset in file order when there are enough, else all of them
+/// plus random repeats jittered by N(0, 0.005²) per coordinate.
+pub fn resample(points: &[Vec3], n: usize, rng: &mut SplitMix) -> Vec<Vec3> {
+    if points.is_empty() {
+        return Vec::new();
+    }
+    if points.len() >= n {
+        let mut idx: Vec<usize> = (0..points.len()).collect();
+        for i in 0..n {
+            let j = i + rng.below(points.len() - i);
+            idx.swap(i, j);
+        }
+        let mut keep = idx[..n].to_vec();
+        keep.sort_unstable();
+        return keep.into_iter().map(|i| points[i]).collect();
+    }
+    let mut out = points.to_vec();
+    while out.len() < n {
+        let p = points[rng.below(points.len())];
+        out.push(p + 0.005 * Vec3::new(rng.normal(), rng.normal(), rng.normal()));
+    }
+    out
+}
+
+/// One warm-up call, then `repeats` timed calls.
+fn time_it<T, E: std::fmt::Display>(
+    label: &str,
+    repeats: usize,
+    mut f: impl FnMut() -> Result<T, E>,
+) -> Timed {
+    let mut timed = Timed {
+        label: label.to_string(),
+        median_seconds: None,
+        runs: Vec::new(),
+        note: None,
+        error: None,
+    };
+    if let Err(e) = f() {
+        timed.error = Some(e.to_string());
+        return timed;
+    }
+    for _ in 0..repeats.max(1) {
+        let t0 = Instant::now();
+        let r = f();
+        let s = t0.elapsed().as_secs_f64();
+        if let Err(e) = r {
+            timed.error = Some(e.to_string());
+            return timed;
+        }
+        timed.runs.push(s);
+    }
+    timed.median_seconds = Some(ic_eval::median(&timed.runs));
+    timed
+}
+
+fn read_points(path: &Path) -> Result<Vec<Vec3>> {
+    Ok(ic_geometry::io::read_ply_cloud(path)
+        .with_context(|| format!("reading {}", path.display()))?
+        .points)
+}
+
+/// The estimator for `head`: the shipped model, or an untrained network (with a note).
+fn estimator(root: &Path, head: Head, seed: u64) -> Result<(PoseEstimator, Option<String>)> {
+    let path = root.join(pose_model(head.as_str()));
+    if path.is_file() {
+        let e =
+            PoseEstimator::load(&path).with_context(|| format!("loading {}", path.display()))?;
+        return Ok((e, None));
+    }
+    let t = Trainer::new(PoseConfig::cpu(head), seed)?;
+    Ok((
+        t.estimator(),
+        Some(format!(
+            "untrained cpu-preset weights: {} is absent",
+            pose_model(head.as_str()).display()
+        )),
+    ))
+}
+
+#[allow(clippy::too_many_arguments)]
+pub fn measure(
+    root: &Path,
+    noback: &CaseSet,
+    room: &CaseSet,
+    objects: &Objects,
+    seed: u64,
+    threads: usize,
+    repeats: usize,
+    train_steps: usize,
+) -> Result<Speed> {
+    let first = noback.dir.join("case_00000");
+    let source = read_points(&first.join("source.ply"))?;
+    let target = read_points(&first.join("target.ply"))?;
+    let total = (SIZES.len() * 4 + 1 + 2 + 2) as u64;
+    let bar = crate::bench::progress_bar(total, "speed");
+
+    // Registration at 512/1024/2048.
+    let mut ours = Vec::new();
+    for head in [Head::Softmax, Head::Ot] {
+        let (mut est, note) = estimator(root, head, seed)?;
+        for &n in &SIZES {
+            let mut rng = SplitMix(seed ^ (n as u64).wrapping_mul(0x1000_0001));
+            let x = resample(&source, n, &mut rng);
+            let y = resample(&target, n, &mut rng);
+            for refine in [Refine::None, Refine::Icp] {
+                est.recovery.refine = refine;
+                let method = format!(
+                    "ours-{}{}",
+                    head.as_str(),
+                    if refine == Refine::Icp { "-icp" } else { "" }
+                );
+                bar.set_message(format!("{method} n={n}"));
+                // A failed recovery (untrained weights can give degenerate matches) still ran
+                // the network: time it, and say so.
+                let mut failure = None;
+                let mut timed = time_it(&method, repeats, || {
+                    if let Err(e) = est.estimate(&x, &y) {
+                        failure = Some(e.to_string());
+                    }
+                    Ok::<_, std::convert::Infallible>(())
+                });
+                timed.note = match (note.clone(), failure) {
+                    (n, None) => n,
+                    (n, Some(f)) => Some(
+                        n.map_or(String::new(), |n| format!("{n}; "))
+                            + &format!("the pose recovery failed ({f}), the time still counts it"),
+                    ),
+                };
+                tracing::info!(method, n, median = ?timed.median_seconds, "registration time");
+                ours.push(RegTiming {
+                    method,
+                    points: n,
+                    timed,
+                });
+                bar.inc(1);
+            }
+        }
+    }
+
+    // Segmentation of one 640×480 map.
+    bar.set_message("segmentation");
+    let segmentation = segmentation_time(root, room, seed, repeats)?;
+    tracing::info!(median = ?segmentation.median_seconds, "segmentation time");
+    bar.inc(1);
+
+    // Renderer views/s.
+    let corpus = Arc::new(objects.corpus(Split::Test, seed)?);
+    let mesh = corpus.object(0)?.mesh.clone();
+    let mut renderer = CpuRenderer::new();
+    let mut render = Vec::new();
+    let alone = SceneConfig {
+        background: Background::None,
+        intrinsics: ObjectSampleConfig::default().intrinsics,
+        view: ViewSphere::paper(2.8),
+        ..SceneConfig::object_only()
+    };
+    for (label, cfg) in [
+        (
+            "CPU renderer, room scene 640×480",
+            RoomSampleConfig::default().scene,
+        ),
+        ("CPU renderer, object alone 160×120", alone),
+    ] {
+        bar.set_message(label);
+        let built = SceneBuilder::new(cfg)?.build(&mesh, seed)?;
+        let t = time_it(label, repeats.max(10), || {
+            renderer.render(&built.scene, &built.camera)
+        });
+        tracing::info!(label, median = ?t.median_seconds, "render time");
+        render.push(t);
+        bar.inc(1);
+    }
+
+    // Training steps.
+    let train_corpus = Arc::new(objects.corpus(Split::Train, seed)?);
+    let mut training = Vec::new();
+    for head in [Head::Softmax, Head::Ot] {
+        bar.set_message(format!("train step {}", head.as_str()));
+        let cfg = PoseConfig::cpu(head);
+        let (m, n, b) = (
+            cfg.train.model_points,
+            cfg.train.observed_points,
+            cfg.train.batch_size,
+        );
+        let g = ObjectSampleGenerator::new(
+            train_corpus.clone(),
+            ObjectSampleConfig {
+                model_points: m,
+                observed_points: n,
+                ..ObjectSampleConfig::default()
+            },
+            seed,
+        )?;
+        // Draw the samples once (this loads and caches their objects, as a training run does
+        // once per object), then time drawing them again.
+        let count = (train_steps.max(1) + 1) * b;
+        let mut samples = (0..count as u64)
+            .map(|i| g.sample(i))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut sample_runs = Vec::new();
+        for i in 0..count as u64 {
+            let t0 = Instant::now();
+            let again = g.sample(i)?;
+            sample_runs.push(t0.elapsed().as_secs_f64());
+            samples[i as usize] = again;
+        }
+        let batches: Vec<Vec<_>> = samples.chunks(b).map(|c| c.to_vec()).collect();
+        let mut trainer = Trainer::new(cfg, seed)?;
+        let mut k = 0;
+        let step = time_it(
+            &format!("train step {} batch {b}", head.as_str()),
+            train_steps,
+            || {
+                let r = trainer.step(&batches[k % batches.len()]);
+                k += 1;
+                r
+            },
+        );
+        let sample = Timed {
+            label: format!(
+                "render + sample one training pair, {} preset ({m}/{n} points)",
+                head.as_str()
+            ),
+            median_seconds: Some(ic_eval::median(&sample_runs)),
+            runs: sample_runs,
+            note: Some("objects already loaded (a training run loads each once)".into()),
+            error: None,
+        };
+        let per_hour = |s: f64| b as f64 * 3600.0 / s;
+        let net = step.median_seconds;
+        let with = net
+            .zip(sample.median_seconds)
+            .map(|(s, r)| s + b as f64 * r);
+        tracing::info!(head = head.as_str(), step = ?net, "training step");
+        training.push(TrainTiming {
+            head: head.as_str().into(),
+            batch: b,
+            model_points: m,
+            observed_points: n,
+            pairs_per_hour_network: net.map(per_hour),
+            pairs_per_hour_with_rendering: with.map(per_hour),
+            step,
+            sample,
+        });
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    Ok(Speed {
+        threads,
+        repeats,
+        pair: format!(
+            "`{}`: source.ply and target.ply resampled to n points each",
+            crate::bench::rel(&first).display()
+        ),
+        ours,
+        segmentation,
+        render,
+        training,
+    })
+}
+
+fn segmentation_time(root: &Path, room: &CaseSet, seed: u64, repeats: usize) -> Result<Timed> {
+    let case = room.dir.join("case_00000");
+    let cam: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(case.join("camera.json"))
+            .with_context(|| format!("reading {}", case.join("camera.json").display()))?,
+    )?;
+    let k: Vec<f64> = cam["cam_K"]
+        .as_array()
+        .context("camera.json: no cam_K")?
+        .iter()
+        .filter_map(|v| v.as_f64())
+        .collect();
+    let (w, h) = (
+        cam["width"].as_u64().unwrap_or(640) as u32,
+        cam["height"].as_u64().unwrap_or(480) as u32,
+    );
+    let intrinsics = Intrinsics::new(k[0], k[4], k[2], k[5], w, h)?;
+    let scale = cam["depth_scale"].as_f64().unwrap_or(1.0);
+    let unit_mm = cam["unit_mm"].as_f64().unwrap_or(100.0);
+    let mut depth = ic_render::io::read_depth_png(case.join("depth.png"), scale, Some((w, h)))?;
+    // Metres → normalised units, as the network was trained.
+    for z in &mut depth.data {
+        *z = (*z as f64 * 1000.0 / unit_mm) as f32;
+    }
+    let path = root.join(SEG_MODEL);
+    let (seg, note) = if path.is_file() {
+        (
+            ic_seg::Segmenter::load(&path)
+                .with_context(|| format!("loading {}", path.display()))?,
+            None,
+        )
+    } else {
+        (
+            ic_seg::SegTrainer::new(ic_seg::SegConfig::cpu(), seed)?.segmenter(),
+            Some(format!(
+                "untrained cpu-preset weights: {SEG_MODEL} is absent"
+            )),
+        )
+    };
+    let label = format!("segmentation {w}×{h}");
+    // "Object not found" is an answer, not a failure, for timing.
+    let mut t = time_it(&label, repeats, || {
+        Ok::<_, std::convert::Infallible>(seg.segment(&depth, &intrinsics).is_ok())
+    });
+    t.note = note;
+    Ok(t)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn resample_gives_exact_counts_deterministically() {
+        let pts: Vec<Vec3> = (0..100).map(|i| Vec3::splat(i as f32)).collect();
+        let a = resample(&pts, 30, &mut SplitMix(1));
+        assert_eq!(a.len(), 30);
+        assert!(
+            a.windows(2).all(|w| w[0].x < w[1].x),
+            "file order, no repeats"
+        );
+        assert_eq!(a, resample(&pts, 30, &mut SplitMix(1)));
+        let b = resample(&pts, 250, &mut SplitMix(1));
+        assert_eq!(b.len(), 250);
+        assert_eq!(&b[..100], &pts[..]);
+        assert!(b[100..].iter().all(|p| (p.x - p.x.round()).abs() < 0.05));
+        assert!(resample(&[], 5, &mut SplitMix(1)).is_empty());
+    }
+}
