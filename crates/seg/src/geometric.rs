@@ -17,6 +17,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::post::flood_fill8;
 use crate::{Result, SegError};
 
 /// Settings of [`segment_geometric`] (lengths in normalised object units).
@@ -180,36 +181,20 @@ pub fn segment_geometric(
     let tol2 = (cfg.cluster_tolerance * object_scale).powi(2);
     let mut label = vec![usize::MAX; w * h];
     let mut clusters: Vec<Vec<usize>> = Vec::new();
-    let mut stack = Vec::new();
     for start in 0..w * h {
         if points[start].is_none() || label[start] != usize::MAX {
             continue;
         }
         let id = clusters.len();
         label[start] = id;
-        stack.push(start);
-        let mut members = Vec::new();
-        while let Some(i) = stack.pop() {
-            members.push(i);
-            let p = points[i].unwrap();
-            let (x, y) = ((i % w) as i64, (i / w) as i64);
-            for dy in -1..=1i64 {
-                for dx in -1..=1i64 {
-                    let (nx, ny) = (x + dx, y + dy);
-                    if (dx, dy) == (0, 0) || nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
-                        continue;
-                    }
-                    let j = ny as usize * w + nx as usize;
-                    if label[j] == usize::MAX
-                        && let Some(q) = points[j]
-                        && (q - p).length_squared() < tol2
-                    {
-                        label[j] = id;
-                        stack.push(j);
-                    }
-                }
+        let members = flood_fill8(w, h, vec![start], |i, j| {
+            let admit = label[j] == usize::MAX
+                && points[j].is_some_and(|q| (q - points[i].unwrap()).length_squared() < tol2);
+            if admit {
+                label[j] = id;
             }
-        }
+            admit
+        });
         clusters.push(members);
     }
     let considered: Vec<(f64, &Vec<usize>)> = clusters

@@ -23,33 +23,54 @@ pub fn connected_components(mask: &Mask) -> Vec<Vec<usize>> {
     let (w, h) = (mask.width as usize, mask.height as usize);
     let mut label = vec![false; w * h];
     let mut out = Vec::new();
-    let mut stack = Vec::new();
     for start in 0..w * h {
         if !mask.data[start] || label[start] {
             continue;
         }
         label[start] = true;
-        stack.push(start);
-        let mut component = Vec::new();
-        while let Some(i) = stack.pop() {
-            component.push(i);
-            let (x, y) = ((i % w) as i64, (i / w) as i64);
-            for dy in -1..=1i64 {
-                for dx in -1..=1i64 {
-                    let (nx, ny) = (x + dx, y + dy);
-                    if (dx, dy) == (0, 0) || nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
-                        continue;
-                    }
-                    let j = ny as usize * w + nx as usize;
-                    if mask.data[j] && !label[j] {
-                        label[j] = true;
-                        stack.push(j);
-                    }
+        let mut component = flood_fill8(w, h, vec![start], |_, j| {
+            let admit = mask.data[j] && !label[j];
+            label[j] |= admit;
+            admit
+        });
+        component.sort_unstable();
+        out.push(component);
+    }
+    out
+}
+
+/// 8-connected flood fill over a `width`×`height` grid from `seeds`: a step from pixel `from`
+/// to its neighbour `to` is taken when `admit(from, to)` says so (`admit` must also remember
+/// `to` as visited, so each pixel is admitted once). Returns the seeds and every admitted
+/// pixel, in visiting order.
+pub(crate) fn flood_fill8(
+    width: usize,
+    height: usize,
+    seeds: Vec<usize>,
+    mut admit: impl FnMut(usize, usize) -> bool,
+) -> Vec<usize> {
+    let mut stack = seeds.clone();
+    let mut out = seeds;
+    while let Some(i) = stack.pop() {
+        let (x, y) = ((i % width) as i64, (i / width) as i64);
+        for dy in -1..=1i64 {
+            for dx in -1..=1i64 {
+                let (nx, ny) = (x + dx, y + dy);
+                if (dx, dy) == (0, 0)
+                    || nx < 0
+                    || ny < 0
+                    || nx >= width as i64
+                    || ny >= height as i64
+                {
+                    continue;
+                }
+                let j = ny as usize * width + nx as usize;
+                if admit(i, j) {
+                    out.push(j);
+                    stack.push(j);
                 }
             }
         }
-        component.sort_unstable();
-        out.push(component);
     }
     out
 }
@@ -177,41 +198,26 @@ pub fn refine_with_depth(mask: &Mask, depth: &DepthImage, band: usize, depth_jum
     let core = morph_square(mask, band, false);
     let allowed = mask;
     let mut out = Mask::filled(mask.width, mask.height, false);
-    let mut stack: Vec<usize> = Vec::new();
-    for i in 0..w * h {
-        if core.data[i] && valid(i) {
-            out.data[i] = true;
-            stack.push(i);
-        }
-    }
-    if stack.is_empty() {
+    let seeds: Vec<usize> = (0..w * h).filter(|&i| core.data[i] && valid(i)).collect();
+    if seeds.is_empty() {
         // A sliver thinner than the band: nothing to grow from; keep the mask's valid pixels.
         for i in 0..w * h {
             out.data[i] = mask.data[i] && valid(i);
         }
         return out;
     }
-    while let Some(i) = stack.pop() {
-        let zi = depth.data[i];
-        let (x, y) = ((i % w) as i64, (i / w) as i64);
-        for dy in -1..=1i64 {
-            for dx in -1..=1i64 {
-                let (nx, ny) = (x + dx, y + dy);
-                if (dx, dy) == (0, 0) || nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
-                    continue;
-                }
-                let j = ny as usize * w + nx as usize;
-                if out.data[j] || !allowed.data[j] || !valid(j) {
-                    continue;
-                }
-                let zj = depth.data[j];
-                if (zi - zj).abs() <= depth_jump * zi.min(zj) {
-                    out.data[j] = true;
-                    stack.push(j);
-                }
-            }
-        }
+    for &i in &seeds {
+        out.data[i] = true;
     }
+    flood_fill8(w, h, seeds, |i, j| {
+        if out.data[j] || !allowed.data[j] || !valid(j) {
+            return false;
+        }
+        let (zi, zj) = (depth.data[i], depth.data[j]);
+        let admit = (zi - zj).abs() <= depth_jump * zi.min(zj);
+        out.data[j] = admit;
+        admit
+    });
     out
 }
 
