@@ -1,7 +1,6 @@
-//! Benchmarks of `ic_seg` (cpu preset network, random weights — the time does not depend on
-//! the weights): segmentation of one 640×480 depth map (input preparation, network,
-//! up-sampling, components), the geometry-only alternative on the same map, and one training
-//! step at the preset's batch size.
+//! Benchmarks of `ic_seg`: segmentation of one 640×480 depth map by the shipped model
+//! (input preparation, network, up-sampling, components, depth refinement), the geometry-only
+//! alternative on the same map, and one training step of the `cpu` preset at its batch size.
 //!
 //! The scene is a box in front of a wall, so both methods find one object.
 
@@ -38,8 +37,11 @@ fn scene(w: u32, h: u32) -> (DepthImage, Mask) {
 fn segment(c: &mut Criterion) {
     let mut group = c.benchmark_group("seg");
     group.sample_size(20);
-    let cfg = SegConfig::cpu();
-    let seg = SegTrainer::new(cfg, 1).expect("network").segmenter();
+    // The shipped model (random weights would threshold the whole image into one component and
+    // time the post-processing of 300 000 pixels instead).
+    let shipped =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/seg-cpu.safetensors");
+    let seg = ic_seg::Segmenter::load(&shipped).expect("models/seg-cpu.safetensors");
     let (depth, _) = scene(640, 480);
     let k = Intrinsics::new(525.0, 525.0, 319.5, 239.5, 640, 480).expect("camera");
     group.bench_function("network_640x480", |b| {
