@@ -144,42 +144,48 @@ pub fn erode3x3(mask: &Mask) -> Mask {
 }
 
 /// Square dilation (`grow`) or erosion (`!grow`) by `radius` pixels, as separable running
-/// max / min filters; outside the image counts as background.
+/// max / min filters; outside the image counts as background. Each pass counts the set pixels
+/// of the window with prefix sums, so the cost does not depend on the radius.
 pub fn morph_square(mask: &Mask, radius: usize, grow: bool) -> Mask {
     let (w, h) = (mask.width as usize, mask.height as usize);
-    let r = radius as i64;
-    let pass = |src: &[bool], along_rows: bool| -> Vec<bool> {
-        let mut out = vec![false; w * h];
-        for y in 0..h {
-            for x in 0..w {
-                let mut acc = !grow;
-                for d in -r..=r {
-                    let (xx, yy) = if along_rows {
-                        (x as i64 + d, y as i64)
-                    } else {
-                        (x as i64, y as i64 + d)
-                    };
-                    let v = xx >= 0
-                        && yy >= 0
-                        && xx < w as i64
-                        && yy < h as i64
-                        && src[yy as usize * w + xx as usize];
-                    if grow {
-                        acc |= v;
-                    } else {
-                        acc &= v;
-                    }
-                }
-                out[y * w + x] = acc;
-            }
+    let window = 2 * radius + 1;
+    // One line of `len` pixels read at `start + k·stride`, written to `dst` likewise.
+    let line = |src: &[bool],
+                dst: &mut [bool],
+                start: usize,
+                stride: usize,
+                len: usize,
+                prefix: &mut Vec<u32>| {
+        prefix.clear();
+        prefix.push(0);
+        for k in 0..len {
+            let last = *prefix.last().unwrap_or(&0);
+            prefix.push(last + src[start + k * stride] as u32);
         }
-        out
+        for k in 0..len {
+            let lo = k.saturating_sub(radius);
+            let hi = (k + radius).min(len - 1);
+            let count = prefix[hi + 1] - prefix[lo];
+            dst[start + k * stride] = if grow {
+                count > 0
+            } else {
+                k >= radius && k + radius < len && count as usize == window
+            };
+        }
     };
-    let rows = pass(&mask.data, true);
+    let mut prefix = Vec::with_capacity(w.max(h) + 1);
+    let mut rows = vec![false; w * h];
+    for y in 0..h {
+        line(&mask.data, &mut rows, y * w, 1, w, &mut prefix);
+    }
+    let mut out = vec![false; w * h];
+    for x in 0..w {
+        line(&rows, &mut out, x, w, h, &mut prefix);
+    }
     Mask {
         width: mask.width,
         height: mask.height,
-        data: pass(&rows, false),
+        data: out,
     }
 }
 
@@ -368,6 +374,39 @@ mod tests {
             rows(&morph_square(&big, 1, false)),
             rows(&morph_square(&m, 1, true))
         );
+    }
+
+    #[test]
+    fn morphology_matches_the_definition_on_random_masks() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        for _ in 0..20 {
+            let (w, h) = (rng.random_range(1..12u32), rng.random_range(1..12u32));
+            let m =
+                Mask::from_vec(w, h, (0..w * h).map(|_| rng.random_bool(0.6)).collect()).unwrap();
+            let r = rng.random_range(0..4usize) as i64;
+            for grow in [true, false] {
+                let got = morph_square(&m, r as usize, grow);
+                for y in 0..h as i64 {
+                    for x in 0..w as i64 {
+                        let at = |xx: i64, yy: i64| {
+                            xx >= 0
+                                && yy >= 0
+                                && xx < w as i64
+                                && yy < h as i64
+                                && m.data[(yy * w as i64 + xx) as usize]
+                        };
+                        let mut cells = (-r..=r).flat_map(|dy| (-r..=r).map(move |dx| (dx, dy)));
+                        let want = if grow {
+                            cells.any(|(dx, dy)| at(x + dx, y + dy))
+                        } else {
+                            cells.all(|(dx, dy)| at(x + dx, y + dy))
+                        };
+                        assert_eq!(got.data[(y * w as i64 + x) as usize], want, "{w}×{h} r {r}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]
