@@ -34,6 +34,7 @@ mod bench_run;
 mod bench_speed;
 mod data;
 mod pose;
+mod run;
 mod seg;
 
 // Large element-wise tensor ops are ~10x slower with glibc's malloc (fresh pages each time).

@@ -11,13 +11,14 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
+use crate::run;
 use anyhow::{Context, Result, bail};
 use ic_data::{
     Corpus, CorpusOptions, FolderSplit, ObjectSample, ObjectSampleConfig, ObjectSampleGenerator,
     Prefetcher, Split,
 };
 use ic_pose::{Head, PoseConfig, PoseEstimator, Refine, Trainer};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 
 /// Seed of the validation sample stream (fixed whatever the run's seed).
 const VALIDATION_SEED: u64 = 0x7661_6c69;
@@ -382,12 +383,7 @@ pub fn train(args: TrainArgs) -> Result<()> {
         args.resume.then_some(start),
     )?;
     let best_json = args.out.join("best.json");
-    let mut best_score: f64 = std::fs::read_to_string(&best_json)
-        .ok()
-        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-        .and_then(|v| v["score"].as_f64())
-        .filter(|_| args.resume)
-        .unwrap_or(f64::NEG_INFINITY);
+    let mut best_score = run::previous_best_score(&best_json, args.resume);
 
     let gen2 = generator.clone();
     let batches = Prefetcher::new(
@@ -399,24 +395,10 @@ pub fn train(args: TrainArgs) -> Result<()> {
     )
     .batches(b);
 
-    let bar = ProgressBar::new(total);
-    bar.set_position(start);
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{elapsed_precise} [{bar:30}] {pos}/{len} {msg} ETA {eta_precise}",
-        )?
-        .progress_chars("=> "),
-    );
+    let bar = run::progress_bar(total, start)?;
     let clock = Instant::now();
     let mut last_ckpt = Instant::now();
     let (mut loss_avg, mut acc_avg) = (f64::NAN, f64::NAN);
-    let ema = |avg: f64, x: f64| {
-        if avg.is_nan() {
-            x
-        } else {
-            0.95 * avg + 0.05 * x
-        }
-    };
     let mut done = start;
     for batch in batches {
         let batch = batch?;
@@ -427,10 +409,10 @@ pub fn train(args: TrainArgs) -> Result<()> {
             trainer.save(&args.out.join("nonfinite.safetensors"))?;
             bail!("non-finite loss at iteration {done}");
         }
-        loss_avg = ema(loss_avg, loss);
+        loss_avg = run::ema(loss_avg, loss);
         let acc = stats.accuracy.unwrap_or(f64::NAN);
         if acc.is_finite() {
-            acc_avg = ema(acc_avg, acc);
+            acc_avg = run::ema(acc_avg, acc);
         }
         let elapsed = clock.elapsed().as_secs_f64();
         let sps = ((done - start) * b as u64) as f64 / elapsed;
@@ -445,7 +427,7 @@ pub fn train(args: TrainArgs) -> Result<()> {
             sps * 3600.0
         ));
         let last = done >= total;
-        if !std::io::IsTerminal::is_terminal(&std::io::stderr()) && (done % 10 == 0 || last) {
+        if !run::interactive() && (done % 10 == 0 || last) {
             eprintln!(
                 "iteration {done}/{total}: loss {loss_avg:.3} acc {acc_avg:.3} {:.0} pairs/h, {elapsed:.0} s",
                 sps * 3600.0
@@ -474,25 +456,18 @@ pub fn train(args: TrainArgs) -> Result<()> {
                 m.rotation_acc_15,
                 m.correspondence_accuracy
             );
-            if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
-                bar.println(line);
-            } else {
-                eprintln!("{line}");
-            }
+            run::report(&bar, line);
             if score > best_score {
                 best_score = score;
                 trainer.save_weights(&best_path)?;
-                let j = serde_json::json!({"iteration": done, "score": score, "validation": m});
-                std::fs::write(&best_json, serde_json::to_string_pretty(&j)?)?;
+                run::write_best(&best_json, done, score, &m)?;
             }
         }
-        let stop = STOP.load(Ordering::SeqCst);
-        if last || stop || last_ckpt.elapsed().as_secs() >= args.checkpoint_secs {
+        let stop = run::checkpoint(last, &mut last_ckpt, args.checkpoint_secs, || {
             csv.flush()?;
             val_csv.flush()?;
-            trainer.save(&latest)?;
-            last_ckpt = Instant::now();
-        }
+            Ok(trainer.save(&latest)?)
+        })?;
         if stop {
             bar.abandon_with_message(format!("interrupted; checkpoint saved at iteration {done}"));
             eprintln!("interrupted: saved {} (iteration {done})", latest.display());

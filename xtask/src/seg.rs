@@ -8,20 +8,21 @@
 use std::io::Write;
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
 use std::time::Instant;
 
+use crate::run;
 use anyhow::{Context, Result, bail};
 use ic_data::{
     Corpus, CorpusOptions, FolderSplit, Prefetcher, RoomSampleConfig, RoomSampleGenerator,
     RoomView, Split,
 };
+use ic_geometry::Mask;
 use ic_render::CpuRenderer;
 use ic_seg::post::iou;
 use ic_seg::{GeometricConfig, SegConfig, SegError, SegExample, SegTrainer, Segmenter};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 
-use crate::pose::{STOP, install_signal_handlers, open_csv, set_threads};
+use crate::pose::{install_signal_handlers, open_csv, set_threads};
 
 /// Seed of the validation scene stream (fixed whatever the run's seed).
 const VALIDATION_SEED: u64 = 0x7365_6776;
@@ -122,35 +123,54 @@ pub struct MaskMetrics {
     pub seconds_median: f64,
 }
 
-fn mask_metrics(ious: &[f64], not_found: usize, seconds: &[f64]) -> MaskMetrics {
-    let n = ious.len();
-    MaskMetrics {
-        count: n,
-        found_rate: ious.iter().filter(|&&i| i >= 0.5).count() as f64 / n.max(1) as f64,
-        not_found,
-        iou_median: ic_eval::median(ious),
-        iou_mean: ious.iter().sum::<f64>() / n.max(1) as f64,
-        iou_at_least_0_9: ious.iter().filter(|&&i| i >= 0.9).count() as f64 / n.max(1) as f64,
-        seconds_median: ic_eval::median(seconds),
+/// Per-view IoUs, times and misses of one method, as the views come.
+#[derive(Default)]
+struct MaskTally {
+    ious: Vec<f64>,
+    seconds: Vec<f64>,
+    not_found: usize,
+}
+
+impl MaskTally {
+    /// Records one view: `found` is the method's mask (or its error) for `truth`, computed
+    /// since `started`. Object-not-found counts IoU 0; any other error stops the evaluation.
+    fn add(&mut self, truth: &Mask, started: Instant, found: Result<Mask, SegError>) -> Result<()> {
+        match found {
+            Ok(mask) => self.ious.push(iou(&mask, truth)),
+            Err(SegError::ObjectNotFound { .. }) => {
+                self.not_found += 1;
+                self.ious.push(0.0);
+            }
+            Err(e) => return Err(e.into()),
+        }
+        self.seconds.push(started.elapsed().as_secs_f64());
+        Ok(())
+    }
+
+    fn metrics(&self) -> MaskMetrics {
+        let ious = &self.ious;
+        let n = ious.len();
+        MaskMetrics {
+            count: n,
+            found_rate: ious.iter().filter(|&&i| i >= 0.5).count() as f64 / n.max(1) as f64,
+            not_found: self.not_found,
+            iou_median: ic_eval::median(ious),
+            iou_mean: ious.iter().sum::<f64>() / n.max(1) as f64,
+            iou_at_least_0_9: ious.iter().filter(|&&i| i >= 0.9).count() as f64 / n.max(1) as f64,
+            seconds_median: ic_eval::median(&self.seconds),
+        }
     }
 }
 
 /// The network's masks on `views` (a view where nothing is found counts IoU 0).
 fn evaluate_network(seg: &Segmenter, views: &[RoomView]) -> Result<MaskMetrics> {
-    let (mut ious, mut secs, mut not_found) = (Vec::new(), Vec::new(), 0);
+    let mut tally = MaskTally::default();
     for v in views {
         let t = Instant::now();
-        match seg.segment(&v.depth, &v.intrinsics) {
-            Ok(s) => ious.push(iou(&s.mask, &v.mask_visib)),
-            Err(SegError::ObjectNotFound { .. }) => {
-                not_found += 1;
-                ious.push(0.0);
-            }
-            Err(e) => return Err(e.into()),
-        }
-        secs.push(t.elapsed().as_secs_f64());
+        let found = seg.segment(&v.depth, &v.intrinsics).map(|s| s.mask);
+        tally.add(&v.mask_visib, t, found)?;
     }
-    Ok(mask_metrics(&ious, not_found, &secs))
+    Ok(tally.metrics())
 }
 
 pub fn train(args: TrainArgs) -> Result<()> {
@@ -230,12 +250,7 @@ pub fn train(args: TrainArgs) -> Result<()> {
         args.resume.then_some(start),
     )?;
     let best_json = args.out.join("best.json");
-    let mut best_score: f64 = std::fs::read_to_string(&best_json)
-        .ok()
-        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-        .and_then(|v| v["score"].as_f64())
-        .filter(|_| args.resume)
-        .unwrap_or(f64::NEG_INFINITY);
+    let mut best_score = run::previous_best_score(&best_json, args.resume);
     let gen2 = generator.clone();
     let batches = Prefetcher::new(
         start * b as u64,
@@ -245,24 +260,10 @@ pub fn train(args: TrainArgs) -> Result<()> {
         move |i| gen2.view_with(&mut CpuRenderer::new(), i),
     )
     .batches(b);
-    let bar = ProgressBar::new(total);
-    bar.set_position(start);
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{elapsed_precise} [{bar:30}] {pos}/{len} {msg} ETA {eta_precise}",
-        )?
-        .progress_chars("=> "),
-    );
+    let bar = run::progress_bar(total, start)?;
     let clock = Instant::now();
     let mut last_ckpt = Instant::now();
     let (mut loss_avg, mut iou_avg) = (f64::NAN, f64::NAN);
-    let ema = |avg: f64, x: f64| {
-        if avg.is_nan() {
-            x
-        } else {
-            0.95 * avg + 0.05 * x
-        }
-    };
     let mut done = start;
     for batch in batches {
         let views = batch?;
@@ -277,8 +278,8 @@ pub fn train(args: TrainArgs) -> Result<()> {
             trainer.save(&args.out.join("nonfinite.safetensors"))?;
             bail!("non-finite loss at iteration {done}");
         }
-        loss_avg = ema(loss_avg, loss);
-        iou_avg = ema(iou_avg, stats.iou);
+        loss_avg = run::ema(loss_avg, loss);
+        iou_avg = run::ema(iou_avg, stats.iou);
         let elapsed = clock.elapsed().as_secs_f64();
         let sps = ((done - start) * b as u64) as f64 / elapsed;
         writeln!(
@@ -291,7 +292,7 @@ pub fn train(args: TrainArgs) -> Result<()> {
             "loss {loss_avg:.3} IoU {iou_avg:.3} {sps:.2} scenes/s"
         ));
         let last = done >= total;
-        if !std::io::IsTerminal::is_terminal(&std::io::stderr()) && (done % 10 == 0 || last) {
+        if !run::interactive() && (done % 10 == 0 || last) {
             eprintln!(
                 "iteration {done}/{total}: loss {loss_avg:.3} IoU {iou_avg:.3} {sps:.2} scenes/s, {elapsed:.0} s"
             );
@@ -307,26 +308,19 @@ pub fn train(args: TrainArgs) -> Result<()> {
                 "iteration {done}: validation IoU median {:.3} mean {:.3}, found {:.3}",
                 m.iou_median, m.iou_mean, m.found_rate
             );
-            if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
-                bar.println(line);
-            } else {
-                eprintln!("{line}");
-            }
+            run::report(&bar, line);
             let score = m.iou_mean + m.found_rate;
             if score > best_score {
                 best_score = score;
                 trainer.save_weights(&best_path)?;
-                let j = serde_json::json!({"iteration": done, "score": score, "validation": m});
-                std::fs::write(&best_json, serde_json::to_string_pretty(&j)?)?;
+                run::write_best(&best_json, done, score, &m)?;
             }
         }
-        let stop = STOP.load(Ordering::SeqCst);
-        if last || stop || last_ckpt.elapsed().as_secs() >= args.checkpoint_secs {
+        let stop = run::checkpoint(last, &mut last_ckpt, args.checkpoint_secs, || {
             csv.flush()?;
             val_csv.flush()?;
-            trainer.save(&latest)?;
-            last_ckpt = Instant::now();
-        }
+            Ok(trainer.save(&latest)?)
+        })?;
         if stop {
             bar.abandon_with_message(format!("interrupted; checkpoint saved at iteration {done}"));
             eprintln!("interrupted: saved {} (iteration {done})", latest.display());
@@ -372,35 +366,22 @@ pub fn eval(args: EvalArgs) -> Result<()> {
     });
     let bar = ProgressBar::new(args.count);
     let geo_cfg = GeometricConfig::default();
-    let (mut ious, mut secs, mut not_found) = (Vec::new(), Vec::new(), 0);
-    let (mut geo_ious, mut geo_secs, mut geo_not_found) = (Vec::new(), Vec::new(), 0);
+    let (mut network, mut geometric) = (MaskTally::default(), MaskTally::default());
     for (i, v) in views.enumerate() {
         let v = v?;
         let t = Instant::now();
-        match seg.segment(&v.depth, &v.intrinsics) {
-            Ok(s) => ious.push(iou(&s.mask, &v.mask_visib)),
-            Err(SegError::ObjectNotFound { .. }) => {
-                not_found += 1;
-                ious.push(0.0);
-            }
-            Err(e) => return Err(e.into()),
-        }
-        secs.push(t.elapsed().as_secs_f64());
+        let found = seg.segment(&v.depth, &v.intrinsics).map(|s| s.mask);
+        network.add(&v.mask_visib, t, found)?;
         if args.geometric {
             let t = Instant::now();
             let cfg = GeometricConfig {
                 seed: i as u64,
                 ..geo_cfg.clone()
             };
-            match ic_seg::segment_geometric(&v.depth, &v.intrinsics, v.model_extent, 1.0, &cfg) {
-                Ok(g) => geo_ious.push(iou(&g.mask, &v.mask_visib)),
-                Err(SegError::ObjectNotFound { .. }) => {
-                    geo_not_found += 1;
-                    geo_ious.push(0.0);
-                }
-                Err(e) => return Err(e.into()),
-            }
-            geo_secs.push(t.elapsed().as_secs_f64());
+            let found =
+                ic_seg::segment_geometric(&v.depth, &v.intrinsics, v.model_extent, 1.0, &cfg)
+                    .map(|g| g.mask);
+            geometric.add(&v.mask_visib, t, found)?;
         }
         bar.set_position(i as u64 + 1);
         if (i + 1) % 50 == 0 && !std::io::IsTerminal::is_terminal(&std::io::stderr()) {
@@ -408,21 +389,20 @@ pub fn eval(args: EvalArgs) -> Result<()> {
         }
     }
     bar.finish_and_clear();
-    let network = mask_metrics(&ious, not_found, &secs);
+    let network_metrics = network.metrics();
     let mut report = serde_json::json!({
-        "per_scene_iou": ious,
+        "per_scene_iou": network.ious,
         "model": args.model,
         "split": args.split,
         "seed": args.seed,
         "resolution": [640, 480],
         "config": seg.config(),
-        "network": network,
+        "network": network_metrics,
     });
     if args.geometric {
-        report["geometric"] =
-            serde_json::to_value(mask_metrics(&geo_ious, geo_not_found, &geo_secs))?;
+        report["geometric"] = serde_json::to_value(geometric.metrics())?;
         report["geometric_config"] = serde_json::to_value(&geo_cfg)?;
-        report["per_scene_iou_geometric"] = serde_json::to_value(&geo_ious)?;
+        report["per_scene_iou_geometric"] = serde_json::to_value(&geometric.ious)?;
     }
     let text = serde_json::to_string_pretty(&report)?;
     println!("{text}");

@@ -27,14 +27,15 @@ use ic_geometry::{
     random_subsample_indices, voxel_downsample,
 };
 use ic_render::{
-    Background, CpuRenderer, OBJECT_ID, Renderer, RoomConfig, Scene, SceneBuilder, SceneConfig,
+    Background, CpuRenderer, OBJECT_ID, Renderer, Rendering, RoomConfig, Scene, SceneBuilder,
+    SceneConfig, SceneSample,
 };
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::sample::PAPER_VOXEL_SIZE;
 use crate::seed::sample_rng;
-use crate::{Corpus, DataError};
+use crate::{Corpus, CorpusObject, DataError};
 
 /// One object unit in millimetres in the room set (see the module documentation).
 pub const ROOM_UNIT_MM: f64 = 100.0;
@@ -329,6 +330,23 @@ impl RoomSampleGenerator {
         self.seed
     }
 
+    /// One draw of an attempt: the object, the camera distance on its grid, the scene, and
+    /// its rendering — the same random draws, in the same order, for samples and views.
+    fn draw(
+        &self,
+        renderer: &mut dyn Renderer,
+        rng: &mut impl Rng,
+    ) -> Result<(Arc<CorpusObject>, SceneSample, Rendering), DataError> {
+        let cfg = &self.config;
+        let object = self.corpus.pick(rng)?;
+        let steps = ((cfg.distance.1 - cfg.distance.0) / cfg.distance_step).floor() as u64;
+        let step = rng.random_range(0..=steps);
+        let scene_seed: u64 = rng.random();
+        let built = self.builder(step)?.build(&object.mesh, scene_seed)?;
+        let rendering = renderer.render(&built.scene, &built.camera)?;
+        Ok((object, built, rendering))
+    }
+
     /// View `index` as a depth map and visible mask only (one render, no voxelising, no
     /// model points): the draws are those of [`Self::sample_with`], but a view is redrawn
     /// when fewer than `min_object_voxels` pixels of the object are visible, so for a barely
@@ -342,12 +360,7 @@ impl RoomSampleGenerator {
         let mut rng = sample_rng(self.seed, index);
         let mut last = 0;
         for _ in 0..cfg.max_attempts {
-            let object = self.corpus.pick(&mut rng)?;
-            let steps = ((cfg.distance.1 - cfg.distance.0) / cfg.distance_step).floor() as u64;
-            let step = rng.random_range(0..=steps);
-            let scene_seed: u64 = rng.random();
-            let built = self.builder(step)?.build(&object.mesh, scene_seed)?;
-            let rendering = renderer.render(&built.scene, &built.camera)?;
+            let (object, built, rendering) = self.draw(renderer, &mut rng)?;
             let mask_visib = rendering.mask(OBJECT_ID);
             last = mask_visib.data.iter().filter(|&&m| m).count();
             if last < cfg.min_object_voxels.max(1) {
@@ -396,12 +409,7 @@ impl RoomSampleGenerator {
         let mut rng = sample_rng(self.seed, index);
         let mut last = 0;
         for _ in 0..cfg.max_attempts {
-            let object = self.corpus.pick(&mut rng)?;
-            let steps = ((cfg.distance.1 - cfg.distance.0) / cfg.distance_step).floor() as u64;
-            let step = rng.random_range(0..=steps);
-            let scene_seed: u64 = rng.random();
-            let built = self.builder(step)?.build(&object.mesh, scene_seed)?;
-            let rendering = renderer.render(&built.scene, &built.camera)?;
+            let (object, built, rendering) = self.draw(renderer, &mut rng)?;
             let mask_visib = rendering.mask(OBJECT_ID);
             let alone = Scene::single(object.mesh.clone(), built.object_pose, OBJECT_ID);
             let mask_all = renderer.render(&alone, &built.camera)?.mask(OBJECT_ID);

@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use ic_geometry::io::{PlyEncoding, write_ply};
 use ic_geometry::{DepthImage, Intrinsics, Mask, Mesh, PointCloud, Pose, voxel_downsample_points};
-use ic_render::{Camera, CpuRenderer, Renderer, Scene, turbo_like};
+use ic_render::{Camera, CpuRenderer, Renderer, Scene, depth_colours, is_mask_edge};
 
 use crate::error::{CliError, Result};
 
@@ -25,58 +25,27 @@ pub fn render_mask(mesh: &Arc<Mesh>, pose: &Pose, intrinsics: &Intrinsics) -> Re
     Ok(view.mask(1))
 }
 
-fn is_edge(mask: &Mask, u: usize, v: usize) -> bool {
-    let (w, h) = (mask.width as usize, mask.height as usize);
-    let at = |x: usize, y: usize| mask.data[y * w + x];
-    at(u, v)
-        && (u == 0
-            || v == 0
-            || u + 1 == w
-            || v + 1 == h
-            || !at(u - 1, v)
-            || !at(u + 1, v)
-            || !at(u, v - 1)
-            || !at(u, v + 1))
-}
-
 /// RGB8 pixels of the overlay: the depth colour-mapped (turbo-like, near blue, far red, no
 /// return black), the model's silhouette blended in magenta with a solid outline,
 /// and the segmentation mask's outline in white when given.
 pub fn overlay_rgb(depth: &DepthImage, model: &Mask, segmentation: Option<&Mask>) -> Vec<u8> {
-    let (w, h) = (depth.width as usize, depth.height as usize);
-    let valid = depth
-        .data
-        .iter()
-        .copied()
-        .filter(|&z| z > 0.0 && z.is_finite());
-    let (lo, hi) = valid.fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), z| {
-        (lo.min(z), hi.max(z))
-    });
-    let span = if hi > lo { hi - lo } else { 1.0 };
-    let mut out = Vec::with_capacity(w * h * 3);
-    for v in 0..h {
-        for u in 0..w {
-            let i = v * w + u;
-            let z = depth.data[i];
-            let mut c = if z > 0.0 && z.is_finite() {
-                turbo_like((z - lo) / span)
+    let w = depth.width as usize;
+    let mut out = Vec::with_capacity(depth.data.len() * 3);
+    for (i, mut c) in depth_colours(depth).into_iter().enumerate() {
+        let (u, v) = (i % w, i / w);
+        if model.data[i] {
+            c = if is_mask_edge(model, u, v) {
+                MODEL_COLOUR
             } else {
-                [0, 0, 0]
+                [0, 1, 2].map(|k| ((c[k] as u16 + MODEL_COLOUR[k] as u16) / 2) as u8)
             };
-            if model.data[i] {
-                c = if is_edge(model, u, v) {
-                    MODEL_COLOUR
-                } else {
-                    [0, 1, 2].map(|k| ((c[k] as u16 + MODEL_COLOUR[k] as u16) / 2) as u8)
-                };
-            }
-            if let Some(s) = segmentation
-                && is_edge(s, u, v)
-            {
-                c = MASK_COLOUR;
-            }
-            out.extend_from_slice(&c);
         }
+        if let Some(s) = segmentation
+            && is_mask_edge(s, u, v)
+        {
+            c = MASK_COLOUR;
+        }
+        out.extend_from_slice(&c);
     }
     out
 }
@@ -84,19 +53,7 @@ pub fn overlay_rgb(depth: &DepthImage, model: &Mask, segmentation: Option<&Mask>
 /// Writes an RGB8 PNG atomically.
 pub fn write_rgb_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<()> {
     crate::inputs::create_parent(path)?;
-    ic_render::io::write_atomic(path, |w| {
-        let codec = |e: png::EncodingError| ic_render::ImageIoError::Codec {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        };
-        let mut enc = png::Encoder::new(w, width, height);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        let mut writer = enc.write_header().map_err(codec)?;
-        writer.write_image_data(rgb).map_err(codec)?;
-        writer.finish().map_err(codec)
-    })
-    .map_err(|e| CliError::input(e.to_string()))
+    ic_render::write_rgb_png(path, width, height, rgb).map_err(|e| CliError::input(e.to_string()))
 }
 
 /// Renders `mesh` (normalised) at `pose_normalised` and writes the overlay over `depth`.

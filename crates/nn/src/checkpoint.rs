@@ -115,6 +115,29 @@ pub fn load_into_varmap(
     Ok(())
 }
 
+/// Every tensor of the safetensors file `path`, on `device`.
+pub fn load_tensors(
+    path: &Path,
+    device: &candle_core::Device,
+) -> Result<HashMap<String, Tensor>, CheckpointError> {
+    candle_core::safetensors::load(path, device).map_err(|e| format_err(path, e.to_string()))
+}
+
+/// Restores a training checkpoint written with `varmap_tensors` + `Adam::state`: the
+/// variables of `map` and Adam's moments at step `adam_step`.
+pub fn restore_training(
+    path: &Path,
+    map: &candle_nn::VarMap,
+    adam: &mut crate::adam::Adam,
+    adam_step: u64,
+    device: &candle_core::Device,
+) -> Result<(), CheckpointError> {
+    let tensors = load_tensors(path, device)?;
+    load_into_varmap(map, &tensors, path)?;
+    adam.load_state(&tensors, adam_step)
+        .map_err(|e| format_err(path, e.to_string()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -67,18 +67,13 @@ impl Trainer {
         let config = checkpoint::read_config(path)?;
         let state = checkpoint::read_state(path)?;
         let mut t = Self::new(config, state.seed)?;
-        let tensors =
-            candle_core::safetensors::load(path, &t.device).map_err(|e| PoseError::Checkpoint {
-                path: path.to_path_buf(),
-                message: e.to_string(),
-            })?;
-        ic_nn::checkpoint::load_into_varmap(&t.varmap, &tensors, path)?;
-        t.adam
-            .load_state(&tensors, state.adam_step)
-            .map_err(|e| PoseError::Checkpoint {
-                path: path.to_path_buf(),
-                message: e.to_string(),
-            })?;
+        ic_nn::checkpoint::restore_training(
+            path,
+            &t.varmap,
+            &mut t.adam,
+            state.adam_step,
+            &t.device,
+        )?;
         t.iteration = state.iteration;
         Ok(t)
     }
@@ -135,12 +130,7 @@ impl Trainer {
                 message: "its network configuration differs from this trainer's".into(),
             });
         }
-        let tensors = candle_core::safetensors::load(path, &self.device).map_err(|e| {
-            PoseError::Checkpoint {
-                path: path.to_path_buf(),
-                message: e.to_string(),
-            }
-        })?;
+        let tensors = ic_nn::checkpoint::load_tensors(path, &self.device)?;
         ic_nn::checkpoint::load_into_varmap(&self.varmap, &tensors, path)?;
         Ok(())
     }

@@ -35,48 +35,87 @@ pub fn turbo_like(t: f32) -> [u8; 3] {
     [0, 1, 2].map(|c| ((a[c] + f * (b[c] - a[c])) * 255.0).round() as u8)
 }
 
-/// RGB8 pixels (row-major) of the debug view; the depth range is that of the valid pixels.
-pub fn debug_rgb(depth: &DepthImage, mask: Option<&Mask>) -> Vec<u8> {
-    let (w, h) = (depth.width as usize, depth.height as usize);
-    let valid = depth
+/// The colour of every pixel of `depth` (row-major): turbo-like over the range of the valid
+/// pixels, black where there is no return.
+pub fn depth_colours(depth: &DepthImage) -> Vec<[u8; 3]> {
+    let valid = |z: f32| z > 0.0 && z.is_finite();
+    let (lo, hi) = depth
         .data
         .iter()
         .copied()
-        .filter(|&z| z > 0.0 && z.is_finite());
-    let (lo, hi) = valid.fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), z| {
-        (lo.min(z), hi.max(z))
-    });
+        .filter(|&z| valid(z))
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), z| {
+            (lo.min(z), hi.max(z))
+        });
     let span = if hi > lo { hi - lo } else { 1.0 };
-    let m =
-        |u: usize, v: usize| mask.is_some_and(|m| m.data.get(v * w + u).copied().unwrap_or(false));
-    let mut out = Vec::with_capacity(w * h * 3);
-    for v in 0..h {
-        for u in 0..w {
-            let z = depth.data[v * w + u];
-            let mut c = if z > 0.0 && z.is_finite() {
+    depth
+        .data
+        .iter()
+        .map(|&z| {
+            if valid(z) {
                 turbo_like((z - lo) / span)
             } else {
                 [0, 0, 0]
-            };
-            if m(u, v) {
-                let edge = u == 0
-                    || v == 0
-                    || u + 1 == w
-                    || v + 1 == h
-                    || !m(u - 1, v)
-                    || !m(u + 1, v)
-                    || !m(u, v - 1)
-                    || !m(u, v + 1);
-                c = if edge {
-                    [255, 255, 255]
-                } else {
-                    c.map(|x| ((x as u16 + 255) / 2) as u8)
-                };
             }
-            out.extend_from_slice(&c);
+        })
+        .collect()
+}
+
+/// Whether pixel `(u, v)` of `mask` is set and on its boundary (a 4-neighbour is unset or
+/// outside the image).
+pub fn is_mask_edge(mask: &Mask, u: usize, v: usize) -> bool {
+    let (w, h) = (mask.width as usize, mask.height as usize);
+    let at = |x: usize, y: usize| mask.data[y * w + x];
+    at(u, v)
+        && (u == 0
+            || v == 0
+            || u + 1 == w
+            || v + 1 == h
+            || !at(u - 1, v)
+            || !at(u + 1, v)
+            || !at(u, v - 1)
+            || !at(u, v + 1))
+}
+
+/// RGB8 pixels (row-major) of the debug view; the depth range is that of the valid pixels.
+pub fn debug_rgb(depth: &DepthImage, mask: Option<&Mask>) -> Vec<u8> {
+    let w = depth.width as usize;
+    let mut out = Vec::with_capacity(depth.data.len() * 3);
+    for (i, mut c) in depth_colours(depth).into_iter().enumerate() {
+        if let Some(m) = mask
+            && m.data[i]
+        {
+            c = if is_mask_edge(m, i % w, i / w) {
+                [255, 255, 255]
+            } else {
+                c.map(|x| ((x as u16 + 255) / 2) as u8)
+            };
         }
+        out.extend_from_slice(&c);
     }
     out
+}
+
+/// Writes RGB8 pixels (row-major) as a PNG, atomically.
+pub fn write_rgb_png(
+    path: impl AsRef<Path>,
+    width: u32,
+    height: u32,
+    rgb: &[u8],
+) -> Result<(), ImageIoError> {
+    let path = path.as_ref();
+    write_atomic(path, |w| {
+        let codec = |e: png::EncodingError| ImageIoError::Codec {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        };
+        let mut enc = png::Encoder::new(w, width, height);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut writer = enc.write_header().map_err(codec)?;
+        writer.write_image_data(rgb).map_err(codec)?;
+        writer.finish().map_err(codec)
+    })
 }
 
 /// Writes the debug view as an RGB PNG (atomically).
@@ -97,17 +136,5 @@ pub fn write_debug_png(
             got_height: m.height,
         });
     }
-    let rgb = debug_rgb(depth, mask);
-    write_atomic(path, |w| {
-        let codec = |e: png::EncodingError| ImageIoError::Codec {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        };
-        let mut enc = png::Encoder::new(w, depth.width, depth.height);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        let mut writer = enc.write_header().map_err(codec)?;
-        writer.write_image_data(&rgb).map_err(codec)?;
-        writer.finish().map_err(codec)
-    })
+    write_rgb_png(path, depth.width, depth.height, &debug_rgb(depth, mask))
 }

@@ -64,7 +64,9 @@ mod scene;
 mod sensor;
 
 pub use cpu::CpuRenderer;
-pub use debug::{debug_rgb, turbo_like, write_debug_png};
+pub use debug::{
+    debug_rgb, depth_colours, is_mask_edge, turbo_like, write_debug_png, write_rgb_png,
+};
 pub use error::{ImageIoError, RenderError};
 pub use gpu::{WgpuOptions, WgpuRenderer, parse_backends};
 pub use renderer::{

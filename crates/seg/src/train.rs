@@ -118,18 +118,13 @@ impl SegTrainer {
         let config = checkpoint::read_config(path)?;
         let state = checkpoint::read_state(path)?;
         let mut t = Self::new(config, state.seed)?;
-        let tensors =
-            candle_core::safetensors::load(path, &t.device).map_err(|e| SegError::Checkpoint {
-                path: path.to_path_buf(),
-                message: e.to_string(),
-            })?;
-        ic_nn::checkpoint::load_into_varmap(&t.varmap, &tensors, path)?;
-        t.adam
-            .load_state(&tensors, state.adam_step)
-            .map_err(|e| SegError::Checkpoint {
-                path: path.to_path_buf(),
-                message: e.to_string(),
-            })?;
+        ic_nn::checkpoint::restore_training(
+            path,
+            &t.varmap,
+            &mut t.adam,
+            state.adam_step,
+            &t.device,
+        )?;
         t.iteration = state.iteration;
         Ok(t)
     }
