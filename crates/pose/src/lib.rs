@@ -31,11 +31,13 @@
 //! k-NN graph is computed in plain Rust ([`knn`]); DGCNN runs channel-first with the
 //! per-point products before the neighbour gather.
 
+pub mod attention;
 pub mod checkpoint;
 pub mod config;
 pub mod dgcnn;
 mod error;
 pub mod estimator;
+mod fastmath;
 pub mod knn;
 pub mod layers;
 pub mod network;

@@ -8,6 +8,8 @@ use std::sync::{Arc, Mutex};
 use candle_core::{CpuStorage, CustomOp1, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
+use crate::fastmath::{exp_approx, has_avx2_fma};
+
 /// Builds the augmented, temperature-scaled score matrix Z = S̄ / λ, `[B, M+1, N+1]`.
 fn augmented_scaled(scores: &Tensor, alpha: f32, lambda: f32) -> Result<Tensor> {
     let (b, m, n) = scores.dims3()?;
@@ -164,38 +166,6 @@ struct History {
 const GRAIN: usize = 16 * 1024;
 /// Lane width of the manually unrolled reductions (lets LLVM vectorise them).
 const LANES: usize = 16;
-
-#[inline(always)]
-fn fmadd<const F: bool>(a: f32, b: f32, c: f32) -> f32 {
-    if F { a.mul_add(b, c) } else { a * b + c }
-}
-
-/// exp(x) in f32 (Cephes-style range reduction + degree-7 polynomial, ≈ 1–2 ulp), branch-free
-/// so that it vectorises; returns exactly 0 below −87 (including −∞) and saturates at e^88.
-#[allow(clippy::excessive_precision)]
-#[inline(always)]
-fn exp_approx<const F: bool>(x: f32) -> f32 {
-    const LOG2E: f32 = std::f32::consts::LOG2_E;
-    const LN2_HI: f32 = 0.693_359_375; // exact in f32: n·LN2_HI is exact
-    const LN2_LO: f32 = -2.121_944_4e-4;
-    const SHIFTER: f32 = 12_582_912.0; // 1.5 · 2^23: adding it rounds to an integer
-    let xc = x.clamp(-87.0, 88.0); // NaN stays NaN
-    let kf = fmadd::<F>(xc, LOG2E, SHIFTER);
-    let n = kf - SHIFTER;
-    let r = fmadd::<F>(n, -LN2_HI, xc);
-    let r = fmadd::<F>(n, -LN2_LO, r);
-    let mut p = 1.987_569_2e-4f32;
-    p = fmadd::<F>(p, r, 1.398_199_9e-3);
-    p = fmadd::<F>(p, r, 8.333_452e-3);
-    p = fmadd::<F>(p, r, 4.166_579_6e-2);
-    p = fmadd::<F>(p, r, 1.666_666_5e-1);
-    p = fmadd::<F>(p, r, 0.5);
-    let y = fmadd::<F>(p, r * r, r) + 1.0;
-    let ni = (kf.to_bits() as i32).wrapping_sub(SHIFTER.to_bits() as i32);
-    let scale = f32::from_bits((ni.wrapping_add(127) << 23) as u32);
-    let out = y * scale;
-    if x < -87.0 { 0.0 } else { out }
-}
 
 /// LSE_j(z_j + add_j), max subtracted.
 #[inline(always)]
@@ -395,18 +365,6 @@ unsafe fn bwd_rows_avx2(
     colacc: &mut [f32],
 ) {
     bwd_rows_generic::<true>(z, u, la, extra, c, gv, vprev, dz, gu, colacc)
-}
-
-#[inline]
-fn has_avx2_fma() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
 }
 
 fn lse_rows(z: &[f32], add: &[f32], base: &[f32], shift: Option<&[f32]>, out: &mut [f32]) {

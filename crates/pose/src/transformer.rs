@@ -4,13 +4,15 @@
 //! Vaswani et al., "Attention Is All You Need" (<https://arxiv.org/abs/1706.03762>); DCP, Wang &
 //! Solomon, ICCV 2019 (<https://arxiv.org/abs/1905.03304>, Sec. 4.2: fx = θx + φ(θx, θy),
 //! fy = θy + φ(θy, θx)); the paper (Dang et al., CVPR 2021) uses one block, 4 heads, ff 1024.
-//! Point-major layout `[B, P, d]`; LayerNorm and softmax are written from tensor ops.
+//! Point-major layout `[B, P, d]`; LayerNorm is written from tensor ops, the attention itself
+//! is the fused kernel of [`crate::attention`].
 
 use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
+use crate::attention::multi_head_attention;
 use crate::config::NetConfig;
-use crate::layers::{Dense, LayerNorm, softmax_last};
+use crate::layers::{Dense, LayerNorm};
 
 /// Multi-head scaled dot-product attention.
 #[derive(Clone, Debug)]
@@ -33,23 +35,15 @@ impl MultiHeadAttention {
         })
     }
 
-    fn split(&self, x: &Tensor) -> Result<Tensor> {
-        let (b, p, d) = x.dims3()?;
-        x.reshape((b, p, self.heads, d / self.heads))?
-            .transpose(1, 2)?
-            .contiguous()
-    }
-
     /// `query`: `[B, Pq, d]`, `context`: `[B, Pk, d]` → `[B, Pq, d]`.
     pub fn forward(&self, query: &Tensor, context: &Tensor) -> Result<Tensor> {
-        let (b, pq, d) = query.dims3()?;
+        let d = query.dim(2)?;
         let scale = 1.0 / ((d / self.heads) as f64).sqrt();
         // Scaling Q (P·d values) instead of the scores (P·P' values).
-        let q = self.split(&(self.q.forward(query)? * scale)?)?;
-        let k = self.split(&self.k.forward(context)?)?;
-        let v = self.split(&self.v.forward(context)?)?;
-        let att = softmax_last(&q.matmul(&k.t()?)?)?;
-        let out = att.matmul(&v)?.transpose(1, 2)?.reshape((b, pq, d))?;
+        let q = (self.q.forward(query)? * scale)?;
+        let k = self.k.forward(context)?;
+        let v = self.v.forward(context)?;
+        let out = multi_head_attention(&q, &k, &v, self.heads)?;
         self.o.forward(&out)
     }
 }

@@ -1,0 +1,433 @@
+//! Fused multi-head scaled dot-product attention (forward and backward) for the CPU.
+//!
+//! Vaswani et al., "Attention Is All You Need" (<https://arxiv.org/abs/1706.03762>), computed
+//! block by block as in FlashAttention (Dao et al., 2022, <https://arxiv.org/abs/2205.14135>):
+//! for each pair, head and block of query rows, the scores `Q·Kᵀ` of the block live only in a
+//! cache-sized scratch buffer, are turned into probabilities in place and multiplied by `V`; the
+//! backward pass recomputes them from the saved row log-sum-exps instead of keeping the
+//! `[B, H, Pq, Pk]` attention maps (16 MB per head at 1024×1024) that the tensor-op version
+//! allocates, fills and reads back several times.
+//!
+//! Heads are read from and written to the point-major `[B, P, d]` layout directly (head `h` is
+//! the column range `h·d/H .. (h+1)·d/H`), so no transpose or copy splits or merges heads.
+
+use std::sync::{Arc, Mutex};
+
+use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
+use rayon::prelude::*;
+
+use crate::fastmath::{MatRef, exp_approx, has_avx2_fma, matmul};
+use crate::layers::softmax_last;
+
+fn check_args(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    heads: usize,
+) -> Result<(usize, usize, usize, usize)> {
+    let (b, pq, d) = q.dims3()?;
+    let (bk, pk, dk) = k.dims3()?;
+    if v.dims3()? != (bk, pk, dk) || bk != b || dk != d {
+        candle_core::bail!(
+            "attention: q {:?}, k {:?}, v {:?} do not fit together",
+            q.dims(),
+            k.dims(),
+            v.dims()
+        );
+    }
+    if heads == 0 || d % heads != 0 {
+        candle_core::bail!("attention: {d} channels do not split into {heads} heads");
+    }
+    if pk == 0 {
+        candle_core::bail!("attention: no keys");
+    }
+    Ok((b, pq, pk, d))
+}
+
+/// Reference [`multi_head_attention`] from generic tensor ops (split heads, `softmax(Q·Kᵀ)·V`,
+/// merge): the test oracle, and the path on non-CPU devices and dtypes.
+pub fn multi_head_attention_reference(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    heads: usize,
+) -> Result<Tensor> {
+    let (b, pq, pk, d) = check_args(q, k, v, heads)?;
+    let split = |x: &Tensor, p: usize| {
+        x.reshape((b, p, heads, d / heads))?
+            .transpose(1, 2)?
+            .contiguous()
+    };
+    let (qh, kh, vh) = (split(q, pq)?, split(k, pk)?, split(v, pk)?);
+    let att = softmax_last(&qh.matmul(&kh.t()?)?)?;
+    att.matmul(&vh)?.transpose(1, 2)?.reshape((b, pq, d))
+}
+
+/// `concat_h softmax(Q_h·K_hᵀ)·V_h` for `q` `[B, Pq, d]` and `k`, `v` `[B, Pk, d]` split into
+/// `heads` heads of `d / heads` channels; returns `[B, Pq, d]`. The caller scales `q` (by
+/// 1/√(d/heads) for scaled dot-product attention).
+///
+/// On the CPU with f32 inputs a fused op (forward and exact backward, see the module docs);
+/// elsewhere [`multi_head_attention_reference`]. The two agree to f32 rounding (tested).
+pub fn multi_head_attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize) -> Result<Tensor> {
+    check_args(q, k, v, heads)?;
+    let cpu_f32 = |t: &Tensor| t.device().is_cpu() && t.dtype() == DType::F32;
+    if !(cpu_f32(q) && cpu_f32(k) && cpu_f32(v)) {
+        return multi_head_attention_reference(q, k, v, heads);
+    }
+    q.contiguous()?.apply_op3(
+        &k.contiguous()?,
+        &v.contiguous()?,
+        FusedAttention {
+            heads,
+            lse: Mutex::new(None),
+        },
+    )
+}
+
+/// The fused op; `lse` keeps the row log-sum-exps `[B·H, Pq]` of the last forward for the
+/// backward pass.
+struct FusedAttention {
+    heads: usize,
+    lse: Mutex<Option<Arc<Vec<f32>>>>,
+}
+
+/// Shapes of one call.
+#[derive(Clone, Copy)]
+struct Dims {
+    b: usize,
+    pq: usize,
+    pk: usize,
+    d: usize,
+    heads: usize,
+}
+
+impl Dims {
+    fn dh(&self) -> usize {
+        self.d / self.heads
+    }
+
+    /// Query rows per block: the block's scores take at most ≈ 128 KB (fits in L2).
+    fn block_rows(&self) -> usize {
+        (32 * 1024 / self.pk.max(1)).clamp(8, 256)
+    }
+}
+
+/// In place, each row of `s` (`rows × n`) becomes its softmax and `lse` receives the row's
+/// log-sum-exp; with `recompute`, `lse` is read instead and each row becomes `exp(s − lse)`
+/// (the probabilities again, in the backward pass).
+#[inline(always)]
+fn softmax_rows_generic<const F: bool>(s: &mut [f32], n: usize, lse: &mut [f32], recompute: bool) {
+    for (row, l) in s.chunks_exact_mut(n).zip(lse.iter_mut()) {
+        if recompute {
+            let c = *l;
+            for x in row.iter_mut() {
+                *x = exp_approx::<F>(*x - c);
+            }
+            continue;
+        }
+        let mut mx = [f32::NEG_INFINITY; 8];
+        let mut chunks = row.chunks_exact(8);
+        for ch in &mut chunks {
+            for k in 0..8 {
+                mx[k] = if ch[k] > mx[k] { ch[k] } else { mx[k] };
+            }
+        }
+        let mut m = f32::NEG_INFINITY;
+        for &x in mx.iter().chain(chunks.remainder()) {
+            m = if x > m { x } else { m };
+        }
+        let mut acc = [0.0f32; 8];
+        let mut chunks = row.chunks_exact_mut(8);
+        for ch in &mut chunks {
+            for k in 0..8 {
+                let e = exp_approx::<F>(ch[k] - m);
+                ch[k] = e;
+                acc[k] += e;
+            }
+        }
+        let mut sum: f32 = acc.iter().sum();
+        for x in chunks.into_remainder() {
+            let e = exp_approx::<F>(*x - m);
+            *x = e;
+            sum += e;
+        }
+        let inv = 1.0 / sum;
+        for x in row.iter_mut() {
+            *x *= inv;
+        }
+        *l = m + sum.ln();
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn softmax_rows_avx2(s: &mut [f32], n: usize, lse: &mut [f32], recompute: bool) {
+    softmax_rows_generic::<true>(s, n, lse, recompute)
+}
+
+fn softmax_rows(s: &mut [f32], n: usize, lse: &mut [f32], recompute: bool) {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2_fma() {
+        // SAFETY: the CPU supports AVX2 and FMA (checked at run time).
+        unsafe { softmax_rows_avx2(s, n, lse, recompute) };
+        return;
+    }
+    softmax_rows_generic::<false>(s, n, lse, recompute)
+}
+
+/// `ds = p ∘ (dp − D_row)` in place in `dp` (rows × n).
+fn softmax_grad_rows(p: &[f32], dp: &mut [f32], n: usize, dsum: &[f32]) {
+    for ((pr, dr), &dd) in p.chunks_exact(n).zip(dp.chunks_exact_mut(n)).zip(dsum) {
+        for (x, &pv) in dr.iter_mut().zip(pr) {
+            *x = pv * (*x - dd);
+        }
+    }
+}
+
+/// Forward of one (pair, head): writes `out` (`[Pq, dh]`) and `lse` (`[Pq]`).
+fn forward_head(
+    q: &[f32],
+    k: &[f32],
+    v: &[f32],
+    h: usize,
+    dims: Dims,
+    out: &mut [f32],
+    lse: &mut [f32],
+) {
+    let Dims { pq, pk, d, .. } = dims;
+    let dh = dims.dh();
+    let off = h * dh;
+    let br = dims.block_rows();
+    let mut s = vec![0.0f32; br * pk];
+    let kt = MatRef::rows(&k[off..], pk, dh, d).t();
+    let vm = MatRef::rows(&v[off..], pk, dh, d);
+    for r0 in (0..pq).step_by(br) {
+        let r = br.min(pq - r0);
+        let s = &mut s[..r * pk];
+        let qb = MatRef::rows(&q[r0 * d + off..], r, dh, d);
+        matmul(qb, kt, s, pk, false);
+        softmax_rows(s, pk, &mut lse[r0..r0 + r], false);
+        matmul(
+            MatRef::rows(s, r, pk, pk),
+            vm,
+            &mut out[r0 * dh..],
+            dh,
+            false,
+        );
+    }
+}
+
+/// Gradients of one (pair, head): `dq` `[Pq, dh]`, `dk`, `dv` `[Pk, dh]`.
+#[allow(clippy::too_many_arguments)]
+fn backward_head(
+    q: &[f32],
+    k: &[f32],
+    v: &[f32],
+    o: &[f32],
+    g: &[f32],
+    lse: &[f32],
+    h: usize,
+    dims: Dims,
+    dq: &mut [f32],
+    dk: &mut [f32],
+    dv: &mut [f32],
+) {
+    let Dims { pq, pk, d, .. } = dims;
+    let dh = dims.dh();
+    let off = h * dh;
+    let br = dims.block_rows();
+    let mut p = vec![0.0f32; br * pk];
+    let mut dp = vec![0.0f32; br * pk];
+    let mut lse_blk = vec![0.0f32; br];
+    let mut dsum = vec![0.0f32; br];
+    let km = MatRef::rows(&k[off..], pk, dh, d);
+    let vm = MatRef::rows(&v[off..], pk, dh, d);
+    for r0 in (0..pq).step_by(br) {
+        let r = br.min(pq - r0);
+        let (p, dp) = (&mut p[..r * pk], &mut dp[..r * pk]);
+        let qb = MatRef::rows(&q[r0 * d + off..], r, dh, d);
+        let gb = MatRef::rows(&g[r0 * d + off..], r, dh, d);
+        // P = exp(Q·Kᵀ − lse).
+        matmul(qb, km.t(), p, pk, false);
+        lse_blk[..r].copy_from_slice(&lse[r0..r0 + r]);
+        softmax_rows(p, pk, &mut lse_blk[..r], true);
+        // dV += Pᵀ·dO.
+        matmul(MatRef::rows(p, r, pk, pk).t(), gb, dv, dh, r0 > 0);
+        // dP = dO·Vᵀ;  D_i = Σ_c dO_ic O_ic;  dS = P ∘ (dP − D).
+        matmul(gb, vm.t(), dp, pk, false);
+        for (i, ds) in dsum[..r].iter_mut().enumerate() {
+            let row = (r0 + i) * d + off;
+            *ds = g[row..row + dh]
+                .iter()
+                .zip(&o[row..row + dh])
+                .map(|(a, b)| a * b)
+                .sum();
+        }
+        softmax_grad_rows(p, dp, pk, &dsum[..r]);
+        let dsm = MatRef::rows(dp, r, pk, pk);
+        // dQ = dS·K;  dK += dSᵀ·Q.
+        matmul(dsm, km, &mut dq[r0 * dh..], dh, false);
+        matmul(dsm.t(), qb, dk, dh, r0 > 0);
+    }
+}
+
+/// Copies per-(pair, head) blocks `[P, dh]` into the point-major `[B, P, d]` layout.
+fn merge_heads(parts: &[Vec<f32>], b: usize, p: usize, d: usize, heads: usize) -> Vec<f32> {
+    let dh = d / heads;
+    let mut out = vec![0.0f32; b * p * d];
+    for (t, part) in parts.iter().enumerate() {
+        let (bi, h) = (t / heads, t % heads);
+        let base = bi * p * d + h * dh;
+        for (i, src) in part.chunks_exact(dh).enumerate() {
+            out[base + i * d..base + i * d + dh].copy_from_slice(src);
+        }
+    }
+    out
+}
+
+fn slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [f32]> {
+    let CpuStorage::F32(v) = s else {
+        candle_core::bail!("attention: {what} must be f32")
+    };
+    let Some((a, z)) = l.contiguous_offsets() else {
+        candle_core::bail!("attention: {what} must be contiguous")
+    };
+    Ok(&v[a..z])
+}
+
+impl FusedAttention {
+    fn run_forward(&self, q: &[f32], k: &[f32], v: &[f32], dims: Dims) -> (Vec<f32>, Vec<f32>) {
+        let Dims {
+            b,
+            pq,
+            pk,
+            d,
+            heads,
+        } = dims;
+        let dh = dims.dh();
+        let results: Vec<(Vec<f32>, Vec<f32>)> = (0..b * heads)
+            .into_par_iter()
+            .map(|t| {
+                let (bi, h) = (t / heads, t % heads);
+                let mut out = vec![0.0f32; pq * dh];
+                let mut lse = vec![0.0f32; pq];
+                forward_head(
+                    &q[bi * pq * d..(bi + 1) * pq * d],
+                    &k[bi * pk * d..(bi + 1) * pk * d],
+                    &v[bi * pk * d..(bi + 1) * pk * d],
+                    h,
+                    dims,
+                    &mut out,
+                    &mut lse,
+                );
+                (out, lse)
+            })
+            .collect();
+        let (outs, lses): (Vec<Vec<f32>>, Vec<Vec<f32>>) = results.into_iter().unzip();
+        (merge_heads(&outs, b, pq, d, heads), lses.concat())
+    }
+}
+
+impl CustomOp3 for FusedAttention {
+    fn name(&self) -> &'static str {
+        "ic-fused-attention"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (b, pq, d) = l1.shape().dims3()?;
+        let pk = l2.shape().dims3()?.1;
+        let dims = Dims {
+            b,
+            pq,
+            pk,
+            d,
+            heads: self.heads,
+        };
+        let (q, k, v) = (
+            slice(s1, l1, "q")?,
+            slice(s2, l2, "k")?,
+            slice(s3, l3, "v")?,
+        );
+        let (out, lse) = self.run_forward(q, k, v, dims);
+        *self.lse.lock().unwrap_or_else(|e| e.into_inner()) = Some(Arc::new(lse));
+        Ok((CpuStorage::F32(out), Shape::from((b, pq, d))))
+    }
+
+    fn bwd(
+        &self,
+        q: &Tensor,
+        k: &Tensor,
+        v: &Tensor,
+        res: &Tensor,
+        grad_res: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (b, pq, d) = q.dims3()?;
+        let pk = k.dim(1)?;
+        let heads = self.heads;
+        let dims = Dims {
+            b,
+            pq,
+            pk,
+            d,
+            heads,
+        };
+        let dh = dims.dh();
+        let flat =
+            |t: &Tensor| -> Result<Vec<f32>> { t.to_dtype(DType::F32)?.flatten_all()?.to_vec1() };
+        let (qv, kv, vv, ov, gv) = (flat(q)?, flat(k)?, flat(v)?, flat(res)?, flat(grad_res)?);
+        let cached = self.lse.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let lse = match cached {
+            Some(l) => l,
+            None => Arc::new(self.run_forward(&qv, &kv, &vv, dims).1),
+        };
+        let grads: Vec<(Vec<f32>, Vec<f32>, Vec<f32>)> = (0..b * heads)
+            .into_par_iter()
+            .map(|t| {
+                let (bi, h) = (t / heads, t % heads);
+                let (qs, ks) = (
+                    bi * pq * d..(bi + 1) * pq * d,
+                    bi * pk * d..(bi + 1) * pk * d,
+                );
+                let mut dq = vec![0.0f32; pq * dh];
+                let mut dk = vec![0.0f32; pk * dh];
+                let mut dv = vec![0.0f32; pk * dh];
+                backward_head(
+                    &qv[qs.clone()],
+                    &kv[ks.clone()],
+                    &vv[ks],
+                    &ov[qs.clone()],
+                    &gv[qs],
+                    &lse[t * pq..(t + 1) * pq],
+                    h,
+                    dims,
+                    &mut dq,
+                    &mut dk,
+                    &mut dv,
+                );
+                (dq, dk, dv)
+            })
+            .collect();
+        let mut dqs = Vec::with_capacity(grads.len());
+        let mut dks = Vec::with_capacity(grads.len());
+        let mut dvs = Vec::with_capacity(grads.len());
+        for (a, bb, c) in grads {
+            dqs.push(a);
+            dks.push(bb);
+            dvs.push(c);
+        }
+        let dev = q.device();
+        let dq = Tensor::from_vec(merge_heads(&dqs, b, pq, d, heads), (b, pq, d), dev)?;
+        let dk = Tensor::from_vec(merge_heads(&dks, b, pk, d, heads), (b, pk, d), dev)?;
+        let dv = Tensor::from_vec(merge_heads(&dvs, b, pk, d, heads), (b, pk, d), dev)?;
+        Ok((Some(dq), Some(dk), Some(dv)))
+    }
+}
