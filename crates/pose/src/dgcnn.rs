@@ -60,7 +60,8 @@ impl EdgeConv {
         // the neighbours, so only the neighbour term is gathered and pooled.
         let pooled = neighbour_max(&a, graph, k)?;
         debug_assert_eq!(pooled.dims(), &[b, cout, p]);
-        leaky_relu(&self.bn.forward_t(&(pooled + c)?, train)?)
+        self.bn
+            .forward_leaky_relu(&(pooled + c)?, train, LEAKY_SLOPE)
     }
 }
 
@@ -211,10 +212,8 @@ impl CustomOp2 for NeighbourMax {
     }
 }
 
-pub(crate) fn leaky_relu(x: &Tensor) -> Result<Tensor> {
-    // max(x, 0.2·x)
-    x.maximum(&(x * 0.2)?)
-}
+/// Negative slope of DGCNN's LeakyReLU.
+pub const LEAKY_SLOPE: f32 = 0.2;
 
 /// The encoder: EdgeConvs 64-64-128-256 (configurable), concatenated, 1×1 conv to `emb_dims`
 /// with BN and LeakyReLU. Input `[B, 3, P]`, output `[B, emb, P]`.
@@ -258,6 +257,6 @@ impl Dgcnn {
         }
         let cat = Tensor::cat(&feats, 1)?;
         let y = self.out.weight().broadcast_left(b)?.matmul(&cat)?;
-        leaky_relu(&self.out_bn.forward_t(&y, train)?)
+        self.out_bn.forward_leaky_relu(&y, train, LEAKY_SLOPE)
     }
 }

@@ -11,7 +11,7 @@ pub(crate) fn fmadd<const F: bool>(a: f32, b: f32, c: f32) -> f32 {
 /// so that it vectorises; returns exactly 0 below −87 (including −∞) and saturates at e^88.
 #[allow(clippy::excessive_precision)]
 #[inline(always)]
-pub(crate) fn exp_approx<const F: bool>(x: f32) -> f32 {
+pub fn exp_approx<const F: bool>(x: f32) -> f32 {
     const LOG2E: f32 = std::f32::consts::LOG2_E;
     const LN2_HI: f32 = 0.693_359_375; // exact in f32: n·LN2_HI is exact
     const LN2_LO: f32 = -2.121_944_4e-4;
@@ -49,7 +49,7 @@ pub(crate) fn has_avx2_fma() -> bool {
 
 /// A strided, read-only f32 matrix view: element (r, c) is `data[r·rs + c·cs]`.
 #[derive(Clone, Copy)]
-pub(crate) struct MatRef<'a> {
+pub struct MatRef<'a> {
     pub data: &'a [f32],
     pub rows: usize,
     pub cols: usize,
@@ -90,7 +90,29 @@ impl<'a> MatRef<'a> {
 
 /// `dst = a·b` (or `dst += a·b` with `accumulate`), `dst` row-major `a.rows × b.cols` with row
 /// stride `dst_rs`. Single-threaded: the callers parallelise over pairs and heads with rayon.
-pub(crate) fn matmul(a: MatRef, b: MatRef, dst: &mut [f32], dst_rs: usize, accumulate: bool) {
+pub fn matmul(a: MatRef, b: MatRef, dst: &mut [f32], dst_rs: usize, accumulate: bool) {
+    matmul_with(a, b, dst, dst_rs, accumulate, gemm::Parallelism::None)
+}
+
+/// [`matmul`] on rayon's threads (for one large product).
+pub fn matmul_par(a: MatRef, b: MatRef, dst: &mut [f32], dst_rs: usize, accumulate: bool) {
+    let threads = rayon::current_num_threads();
+    let par = if threads > 1 && a.rows * b.cols * a.cols >= 1 << 18 {
+        gemm::Parallelism::Rayon(threads)
+    } else {
+        gemm::Parallelism::None
+    };
+    matmul_with(a, b, dst, dst_rs, accumulate, par)
+}
+
+fn matmul_with(
+    a: MatRef,
+    b: MatRef,
+    dst: &mut [f32],
+    dst_rs: usize,
+    accumulate: bool,
+    par: gemm::Parallelism,
+) {
     assert_eq!(a.cols, b.rows, "matmul: inner dimensions differ");
     let (m, n, k) = (a.rows, b.cols, a.cols);
     if m == 0 || n == 0 {
@@ -132,7 +154,7 @@ pub(crate) fn matmul(a: MatRef, b: MatRef, dst: &mut [f32], dst_rs: usize, accum
             false,
             false,
             false,
-            gemm::Parallelism::None,
+            par,
         )
     }
 }

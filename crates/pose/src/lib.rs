@@ -37,7 +37,7 @@ pub mod config;
 pub mod dgcnn;
 mod error;
 pub mod estimator;
-mod fastmath;
+pub mod fastmath;
 pub mod knn;
 pub mod layers;
 pub mod network;

@@ -66,7 +66,7 @@ impl FeedForward {
 
 impl Module for FeedForward {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.down.forward(&self.up.forward(x)?.relu()?)
+        self.down.forward(&self.up.forward_relu(x)?)
     }
 }
 

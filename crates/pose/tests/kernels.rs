@@ -123,3 +123,97 @@ fn neighbour_max_rejects_out_of_range_neighbours() {
     let graph = Tensor::from_vec(vec![0u32, 1, 2, 9], (1, 4), &Device::Cpu).unwrap();
     assert!(neighbour_max(&a, &graph, 1).is_err());
 }
+
+/// A layer built in a fresh VarMap with every variable set to random values.
+fn random_layer<T>(
+    build: impl Fn(candle_nn::VarBuilder) -> candle_core::Result<T>,
+) -> (T, Vec<(String, Var)>) {
+    let varmap = candle_nn::VarMap::new();
+    let vb = candle_nn::VarBuilder::from_varmap(&varmap, candle_core::DType::F32, &Device::Cpu);
+    let layer = build(vb).unwrap();
+    let mut vars: Vec<(String, Var)> = varmap
+        .data()
+        .lock()
+        .unwrap()
+        .iter()
+        .map(|(k, v)| (k.clone(), v.clone()))
+        .collect();
+    vars.sort_by(|a, b| a.0.cmp(&b.0));
+    for (i, (_, v)) in vars.iter().enumerate() {
+        let dims = v.dims().to_vec();
+        let n: usize = dims.iter().product();
+        let r = randn((1, 1, n), 0.5, 100 + i as u64).reshape(dims).unwrap();
+        v.set(&r).unwrap();
+    }
+    (layer, vars)
+}
+
+/// Output and gradients (input first, then every variable) of a weighted sum of `f(x)`.
+fn value_and_grads(
+    f: impl Fn(&Tensor) -> Tensor,
+    x: &Var,
+    vars: &[(String, Var)],
+    w: &Tensor,
+) -> Vec<Vec<f32>> {
+    let out = f(x.as_tensor());
+    let grads = (&out * w).unwrap().sum_all().unwrap().backward().unwrap();
+    let mut all = vec![flat(&out), flat(grads.get(x.as_tensor()).expect("dx"))];
+    for (name, v) in vars {
+        all.push(flat(
+            grads
+                .get(v.as_tensor())
+                .unwrap_or_else(|| panic!("no gradient for {name}")),
+        ));
+    }
+    all
+}
+
+#[test]
+fn fused_layer_norm_matches_tensor_ops() {
+    use candle_core::Module;
+    let (ln, vars) = random_layer(|vb| ic_pose::layers::LayerNorm::new(vb, 24));
+    let x = Var::from_tensor(&randn((3, 70, 24), 2.0, 11)).unwrap();
+    let w = randn((3, 70, 24), 1.0, 12);
+    let fused = value_and_grads(|t| ln.forward(t).unwrap(), &x, &vars, &w);
+    let reference = value_and_grads(|t| ln.forward_reference(t).unwrap(), &x, &vars, &w);
+    for (i, (a, b)) in fused.iter().zip(&reference).enumerate() {
+        assert!(max_rel_diff(a, b) < 1e-4, "layer norm output/gradient {i}");
+    }
+}
+
+#[test]
+fn fused_dense_matches_matmul_plus_bias() {
+    use candle_core::Module;
+    let (dense, vars) = random_layer(|vb| ic_pose::layers::Dense::new(vb, 20, 36, true));
+    let weight = vars
+        .iter()
+        .find(|v| v.0 == "weight")
+        .unwrap()
+        .1
+        .as_tensor()
+        .clone();
+    let bias = vars
+        .iter()
+        .find(|v| v.0 == "bias")
+        .unwrap()
+        .1
+        .as_tensor()
+        .clone();
+    let x = Var::from_tensor(&randn((2, 45, 20), 1.0, 13)).unwrap();
+    let w = randn((2, 45, 36), 1.0, 14);
+    let fused = value_and_grads(|t| dense.forward(t).unwrap(), &x, &vars, &w);
+    let reference = value_and_grads(
+        |t| {
+            t.broadcast_matmul(&weight.t().unwrap())
+                .unwrap()
+                .broadcast_add(&bias)
+                .unwrap()
+        },
+        &x,
+        &vars,
+        &w,
+    );
+    for (i, (a, b)) in fused.iter().zip(&reference).enumerate() {
+        assert!(max_rel_diff(a, b) < 1e-5, "dense output/gradient {i}");
+    }
+}
