@@ -16,7 +16,9 @@ use std::sync::{Arc, Mutex};
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-use crate::fastmath::{MatRef, exp_approx, has_avx2_fma, matmul};
+use crate::fastmath::{
+    MatRef, dot_rows_panels, exp_approx, has_avx2_fma, matmul, pack_panels, rows_times_matrix,
+};
 use crate::layers::softmax_last;
 
 fn check_args(
@@ -185,6 +187,59 @@ fn softmax_grad_rows(p: &[f32], dp: &mut [f32], n: usize, dsum: &[f32]) {
     }
 }
 
+/// The products of one head, by the micro-kernels of [`crate::fastmath`] when the head width is
+/// a multiple of 8 (the presets: 32, 128), by the general GEMM otherwise.
+struct HeadProducts<'a> {
+    /// `K` (or `V`) of the head packed for [`dot_rows_panels`], when the kernels apply.
+    panels: Option<Vec<f32>>,
+    rows: &'a [f32],
+    n: usize,
+    dh: usize,
+    d: usize,
+}
+
+impl<'a> HeadProducts<'a> {
+    /// `rows`: the `[n, d]` point-major matrix starting at the head's first column.
+    fn new(rows: &'a [f32], n: usize, dh: usize, d: usize) -> Self {
+        let panels = (dh % 8 == 0).then(|| {
+            let mut p = Vec::new();
+            pack_panels(rows, n, dh, d, &mut p);
+            p
+        });
+        HeadProducts {
+            panels,
+            rows,
+            n,
+            dh,
+            d,
+        }
+    }
+
+    /// `dst[i][j] = Σ_c a[i][c]·self[j][c]` for the `r` rows of `a` (row stride `d`).
+    fn dot(&self, a: &[f32], r: usize, dst: &mut [f32]) {
+        let (n, dh, d) = (self.n, self.dh, self.d);
+        match &self.panels {
+            Some(p) => dot_rows_panels(a, r, dh, d, p, n, dst, n),
+            None => matmul(
+                MatRef::rows(a, r, dh, d),
+                MatRef::rows(self.rows, n, dh, d).t(),
+                dst,
+                n,
+                false,
+            ),
+        }
+    }
+}
+
+/// `dst (=|+=) l·m` with `m` `[inner, dh]` point-major (row stride `d`) and `dst` `[·, dh]`.
+fn times_rows(l: MatRef, m: &[f32], dh: usize, d: usize, dst: &mut [f32], accumulate: bool) {
+    if dh % 8 == 0 {
+        rows_times_matrix(l, m, dh, d, dst, dh, accumulate)
+    } else {
+        matmul(l, MatRef::rows(m, l.cols, dh, d), dst, dh, accumulate)
+    }
+}
+
 /// Forward of one (pair, head): writes `out` (`[Pq, dh]`) and `lse` (`[Pq]`).
 fn forward_head(
     q: &[f32],
@@ -200,19 +255,18 @@ fn forward_head(
     let off = h * dh;
     let br = dims.block_rows();
     let mut s = vec![0.0f32; br * pk];
-    let kt = MatRef::rows(&k[off..], pk, dh, d).t();
-    let vm = MatRef::rows(&v[off..], pk, dh, d);
+    let keys = HeadProducts::new(&k[off..], pk, dh, d);
     for r0 in (0..pq).step_by(br) {
         let r = br.min(pq - r0);
         let s = &mut s[..r * pk];
-        let qb = MatRef::rows(&q[r0 * d + off..], r, dh, d);
-        matmul(qb, kt, s, pk, false);
+        keys.dot(&q[r0 * d + off..], r, s);
         softmax_rows(s, pk, &mut lse[r0..r0 + r], false);
-        matmul(
+        times_rows(
             MatRef::rows(s, r, pk, pk),
-            vm,
-            &mut out[r0 * dh..],
+            &v[off..],
             dh,
+            d,
+            &mut out[r0 * dh..],
             false,
         );
     }
@@ -241,21 +295,20 @@ fn backward_head(
     let mut dp = vec![0.0f32; br * pk];
     let mut lse_blk = vec![0.0f32; br];
     let mut dsum = vec![0.0f32; br];
-    let km = MatRef::rows(&k[off..], pk, dh, d);
-    let vm = MatRef::rows(&v[off..], pk, dh, d);
+    let keys = HeadProducts::new(&k[off..], pk, dh, d);
+    let values = HeadProducts::new(&v[off..], pk, dh, d);
     for r0 in (0..pq).step_by(br) {
         let r = br.min(pq - r0);
         let (p, dp) = (&mut p[..r * pk], &mut dp[..r * pk]);
-        let qb = MatRef::rows(&q[r0 * d + off..], r, dh, d);
-        let gb = MatRef::rows(&g[r0 * d + off..], r, dh, d);
+        let (qb, gb) = (&q[r0 * d + off..], &g[r0 * d + off..]);
         // P = exp(Q·Kᵀ − lse).
-        matmul(qb, km.t(), p, pk, false);
+        keys.dot(qb, r, p);
         lse_blk[..r].copy_from_slice(&lse[r0..r0 + r]);
         softmax_rows(p, pk, &mut lse_blk[..r], true);
         // dV += Pᵀ·dO.
-        matmul(MatRef::rows(p, r, pk, pk).t(), gb, dv, dh, r0 > 0);
+        times_rows(MatRef::rows(p, r, pk, pk).t(), gb, dh, d, dv, r0 > 0);
         // dP = dO·Vᵀ;  D_i = Σ_c dO_ic O_ic;  dS = P ∘ (dP − D).
-        matmul(gb, vm.t(), dp, pk, false);
+        values.dot(gb, r, dp);
         for (i, ds) in dsum[..r].iter_mut().enumerate() {
             let row = (r0 + i) * d + off;
             *ds = g[row..row + dh]
@@ -267,8 +320,8 @@ fn backward_head(
         softmax_grad_rows(p, dp, pk, &dsum[..r]);
         let dsm = MatRef::rows(dp, r, pk, pk);
         // dQ = dS·K;  dK += dSᵀ·Q.
-        matmul(dsm, km, &mut dq[r0 * dh..], dh, false);
-        matmul(dsm.t(), qb, dk, dh, r0 > 0);
+        times_rows(dsm, &k[off..], dh, d, &mut dq[r0 * dh..], false);
+        times_rows(dsm.t(), qb, dh, d, dk, r0 > 0);
     }
 }
 

@@ -20,7 +20,7 @@ use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
 use crate::config::NetConfig;
-use crate::layers::Dense;
+use crate::layers::{Dense, channel_linear};
 use ic_nn::norm::BatchNorm1;
 
 /// One EdgeConv: `LeakyReLU(BN(max_{j∈N(i)} (Wₙ·x_j + W_c·x_i)))`.
@@ -54,8 +54,8 @@ impl EdgeConv {
         let wc = self.centre.weight();
         let cout = wn.dim(0)?;
         // Per-point products: [C', C] × [B, C, P] → [B, C', P].
-        let a = wn.broadcast_left(b)?.matmul(x)?;
-        let c = wc.broadcast_left(b)?.matmul(x)?;
+        let a = channel_linear(wn, x)?;
+        let c = channel_linear(wc, x)?;
         // max_j (Wₙ·x_j + W_c·x_i) = max_j (Wₙ·x_j) + W_c·x_i: the centre term is constant over
         // the neighbours, so only the neighbour term is gathered and pooled.
         let pooled = neighbour_max(&a, graph, k)?;
@@ -248,7 +248,6 @@ impl Dgcnn {
     }
 
     pub fn forward_t(&self, x: &Tensor, graph: &Tensor, train: bool) -> Result<Tensor> {
-        let b = x.dim(0)?;
         let mut h = x.clone();
         let mut feats = Vec::with_capacity(self.edges.len());
         for e in &self.edges {
@@ -256,7 +255,7 @@ impl Dgcnn {
             feats.push(h.clone());
         }
         let cat = Tensor::cat(&feats, 1)?;
-        let y = self.out.weight().broadcast_left(b)?.matmul(&cat)?;
+        let y = channel_linear(self.out.weight(), &cat)?;
         self.out_bn.forward_leaky_relu(&y, train, LEAKY_SLOPE)
     }
 }

@@ -3,7 +3,7 @@
 //! wrapper around the `gemm` crate (the GEMM candle itself uses) for strided f32 products.
 
 #[inline(always)]
-pub(crate) fn fmadd<const F: bool>(a: f32, b: f32, c: f32) -> f32 {
+pub fn fmadd<const F: bool>(a: f32, b: f32, c: f32) -> f32 {
     if F { a.mul_add(b, c) } else { a * b + c }
 }
 
@@ -183,4 +183,264 @@ mod tests {
             assert_eq!(dst[r * 7 + 5], 1.0, "untouched padding");
         }
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Micro-kernels for products with a short inner or outer dimension (the attention heads: 32
+// channels in the `cpu` preset), where the general GEMM spends most of its time packing.
+
+/// Keys per panel of [`pack_panels`].
+pub const PANEL: usize = 16;
+
+/// Packs the rows of `b` (`rows × cols`, row stride `rs`) into panels of [`PANEL`] rows,
+/// transposed: `out[p·cols·PANEL + c·PANEL + l] = b[p·PANEL + l][c]` (zero past the last row).
+pub fn pack_panels(b: &[f32], rows: usize, cols: usize, rs: usize, out: &mut Vec<f32>) {
+    let panels = rows.div_ceil(PANEL);
+    out.clear();
+    out.resize(panels * cols * PANEL, 0.0);
+    for r in 0..rows {
+        let (p, l) = (r / PANEL, r % PANEL);
+        let src = &b[r * rs..r * rs + cols];
+        let base = p * cols * PANEL + l;
+        for (c, &v) in src.iter().enumerate() {
+            out[base + c * PANEL] = v;
+        }
+    }
+}
+
+/// Rows of `a` per micro-tile of [`dot_rows_panels`].
+const DOT_ROWS: usize = 4;
+
+/// `dst[r][j] = Σ_c a[r][c] · b[j][c]` for `r < rows`, `j < n`, with `b` packed by
+/// [`pack_panels`] (`cols` columns); `a` row-major with row stride `ars`, `dst` with row
+/// stride `drs`.
+#[inline(always)]
+fn dot_rows_panels_generic<const F: bool>(
+    a: &[f32],
+    rows: usize,
+    cols: usize,
+    ars: usize,
+    panels: &[f32],
+    n: usize,
+    dst: &mut [f32],
+    drs: usize,
+) {
+    for r0 in (0..rows).step_by(DOT_ROWS) {
+        let rr = DOT_ROWS.min(rows - r0);
+        for p in 0..n.div_ceil(PANEL) {
+            let panel = &panels[p * cols * PANEL..(p + 1) * cols * PANEL];
+            let mut acc = [[0.0f32; PANEL]; DOT_ROWS];
+            if rr == DOT_ROWS {
+                let arow: [&[f32]; DOT_ROWS] =
+                    std::array::from_fn(|i| &a[(r0 + i) * ars..(r0 + i) * ars + cols]);
+                for c in 0..cols {
+                    let kv = &panel[c * PANEL..(c + 1) * PANEL];
+                    for i in 0..DOT_ROWS {
+                        let q = arow[i][c];
+                        for l in 0..PANEL {
+                            acc[i][l] = fmadd::<F>(q, kv[l], acc[i][l]);
+                        }
+                    }
+                }
+            } else {
+                for c in 0..cols {
+                    let kv = &panel[c * PANEL..(c + 1) * PANEL];
+                    for i in 0..rr {
+                        let q = a[(r0 + i) * ars + c];
+                        for l in 0..PANEL {
+                            acc[i][l] = fmadd::<F>(q, kv[l], acc[i][l]);
+                        }
+                    }
+                }
+            }
+            let j0 = p * PANEL;
+            let w = PANEL.min(n - j0);
+            for (i, row) in acc.iter().enumerate().take(rr) {
+                let o = (r0 + i) * drs + j0;
+                dst[o..o + w].copy_from_slice(&row[..w]);
+            }
+        }
+    }
+}
+
+/// Rows of the output per micro-tile of [`rows_times_matrix`].
+const AXPY_ROWS: usize = 2;
+
+/// One column group of width `W` of [`rows_times_matrix`].
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn rows_times_matrix_group<const F: bool, const W: usize>(
+    l: MatRef,
+    b: &[f32],
+    brs: usize,
+    c0: usize,
+    dst: &mut [f32],
+    drs: usize,
+    accumulate: bool,
+) {
+    let (rows, inner) = (l.rows, l.cols);
+    for r0 in (0..rows).step_by(AXPY_ROWS) {
+        let rr = AXPY_ROWS.min(rows - r0);
+        let mut acc = [[0.0f32; W]; AXPY_ROWS];
+        if rr == AXPY_ROWS {
+            for t in 0..inner {
+                let bv = &b[t * brs + c0..t * brs + c0 + W];
+                for (i, acc_i) in acc.iter_mut().enumerate() {
+                    let s = l.data[(r0 + i) * l.rs + t * l.cs];
+                    for k in 0..W {
+                        acc_i[k] = fmadd::<F>(s, bv[k], acc_i[k]);
+                    }
+                }
+            }
+        } else {
+            for t in 0..inner {
+                let bv = &b[t * brs + c0..t * brs + c0 + W];
+                let s = l.data[r0 * l.rs + t * l.cs];
+                for k in 0..W {
+                    acc[0][k] = fmadd::<F>(s, bv[k], acc[0][k]);
+                }
+            }
+        }
+        for (i, row) in acc.iter().enumerate().take(rr) {
+            let o = &mut dst[(r0 + i) * drs + c0..(r0 + i) * drs + c0 + W];
+            if accumulate {
+                for (d, v) in o.iter_mut().zip(row) {
+                    *d += v;
+                }
+            } else {
+                o.copy_from_slice(row);
+            }
+        }
+    }
+}
+
+#[inline(always)]
+fn rows_times_matrix_generic<const F: bool>(
+    l: MatRef,
+    b: &[f32],
+    cols: usize,
+    brs: usize,
+    dst: &mut [f32],
+    drs: usize,
+    accumulate: bool,
+) {
+    let mut c0 = 0;
+    while c0 < cols {
+        let left = cols - c0;
+        if left >= 32 {
+            rows_times_matrix_group::<F, 32>(l, b, brs, c0, dst, drs, accumulate);
+            c0 += 32;
+        } else if left >= 16 {
+            rows_times_matrix_group::<F, 16>(l, b, brs, c0, dst, drs, accumulate);
+            c0 += 16;
+        } else {
+            rows_times_matrix_group::<F, 8>(l, b, brs, c0, dst, drs, accumulate);
+            c0 += 8;
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn dot_rows_panels_avx2(
+    a: &[f32],
+    rows: usize,
+    cols: usize,
+    ars: usize,
+    panels: &[f32],
+    n: usize,
+    dst: &mut [f32],
+    drs: usize,
+) {
+    dot_rows_panels_generic::<true>(a, rows, cols, ars, panels, n, dst, drs)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn rows_times_matrix_avx2(
+    l: MatRef,
+    b: &[f32],
+    cols: usize,
+    brs: usize,
+    dst: &mut [f32],
+    drs: usize,
+    accumulate: bool,
+) {
+    rows_times_matrix_generic::<true>(l, b, cols, brs, dst, drs, accumulate)
+}
+
+/// `dst[r][j] = Σ_c a[r][c]·b[j][c]` (`a` is `rows × cols` with row stride `ars`; `panels` is
+/// `b`, `n × cols`, packed by [`pack_panels`]; `dst` has row stride `drs`).
+#[allow(clippy::too_many_arguments)]
+pub fn dot_rows_panels(
+    a: &[f32],
+    rows: usize,
+    cols: usize,
+    ars: usize,
+    panels: &[f32],
+    n: usize,
+    dst: &mut [f32],
+    drs: usize,
+) {
+    if rows == 0 || n == 0 {
+        return;
+    }
+    assert!(
+        (rows - 1) * ars + cols <= a.len(),
+        "dot_rows_panels: a out of bounds"
+    );
+    assert!(
+        panels.len() >= n.div_ceil(PANEL) * cols * PANEL,
+        "dot_rows_panels: panels"
+    );
+    assert!(
+        drs >= n && (rows - 1) * drs + n <= dst.len(),
+        "dot_rows_panels: dst"
+    );
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2_fma() {
+        // SAFETY: the CPU supports AVX2 and FMA (checked at run time); bounds checked above.
+        unsafe { dot_rows_panels_avx2(a, rows, cols, ars, panels, n, dst, drs) };
+        return;
+    }
+    dot_rows_panels_generic::<false>(a, rows, cols, ars, panels, n, dst, drs)
+}
+
+/// `dst (=|+=) l·b` where `l` is any strided `rows × inner` view and `b` is `inner × cols`
+/// row-major with row stride `brs`; `cols` must be a multiple of 8.
+pub fn rows_times_matrix(
+    l: MatRef,
+    b: &[f32],
+    cols: usize,
+    brs: usize,
+    dst: &mut [f32],
+    drs: usize,
+    accumulate: bool,
+) {
+    assert!(
+        cols % 8 == 0,
+        "rows_times_matrix: {cols} columns is not a multiple of 8"
+    );
+    if l.rows == 0 || cols == 0 {
+        return;
+    }
+    l.check();
+    if l.cols > 0 {
+        assert!(
+            (l.cols - 1) * brs + cols <= b.len(),
+            "rows_times_matrix: b out of bounds"
+        );
+    }
+    assert!(
+        drs >= cols && (l.rows - 1) * drs + cols <= dst.len(),
+        "rows_times_matrix: dst"
+    );
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2_fma() {
+        // SAFETY: the CPU supports AVX2 and FMA (checked at run time); bounds checked above.
+        unsafe { rows_times_matrix_avx2(l, b, cols, brs, dst, drs, accumulate) };
+        return;
+    }
+    rows_times_matrix_generic::<false>(l, b, cols, brs, dst, drs, accumulate)
 }

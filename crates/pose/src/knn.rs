@@ -4,6 +4,7 @@
 //! times faster than a candle arg-sort and the result goes into the network as a `u32` tensor.
 
 use glam::Vec3;
+use rayon::prelude::*;
 
 /// For each of the `points`, the indices of its `k` nearest points (itself included, as in
 /// DGCNN), flattened row-major: `out[i * k + r]`. Ties break by index, so the graph is
@@ -11,24 +12,34 @@ use glam::Vec3;
 pub fn knn_indices(points: &[Vec3], k: usize) -> Vec<u32> {
     let n = points.len();
     assert!(k >= 1 && k <= n, "knn: k = {k} for {n} points");
-    let mut out = Vec::with_capacity(n * k);
-    let mut dist: Vec<(f32, u32)> = Vec::with_capacity(n);
-    for p in points {
-        dist.clear();
-        dist.extend(
-            points
-                .iter()
-                .enumerate()
-                .map(|(j, q)| (p.distance_squared(*q), j as u32)),
-        );
-        let cmp = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
-        if k < n {
-            dist.select_nth_unstable_by(k - 1, cmp);
-        }
-        let head = &mut dist[..k];
-        head.sort_unstable_by(cmp);
-        out.extend(head.iter().map(|d| d.1));
-    }
+    let mut out = vec![0u32; n * k];
+    // Rows of the graph in parallel (each row only reads `points`): same output on any thread
+    // count.
+    const ROWS_PER_TASK: usize = 64;
+    out.par_chunks_mut(ROWS_PER_TASK * k)
+        .enumerate()
+        .for_each(|(t, rows)| {
+            let mut dist: Vec<(f32, u32)> = Vec::with_capacity(n);
+            for (r, row) in rows.chunks_exact_mut(k).enumerate() {
+                let p = points[t * ROWS_PER_TASK + r];
+                dist.clear();
+                dist.extend(
+                    points
+                        .iter()
+                        .enumerate()
+                        .map(|(j, q)| (p.distance_squared(*q), j as u32)),
+                );
+                let cmp = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+                if k < n {
+                    dist.select_nth_unstable_by(k - 1, cmp);
+                }
+                let head = &mut dist[..k];
+                head.sort_unstable_by(cmp);
+                for (o, d) in row.iter_mut().zip(head.iter()) {
+                    *o = d.1;
+                }
+            }
+        });
     out
 }
 

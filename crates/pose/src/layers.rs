@@ -484,3 +484,83 @@ impl CustomOp3 for FusedLayerNorm {
         ))
     }
 }
+
+/// `y[b] = W·x[b]` for `W` `[C', C]` and channel-first `x` `[B, C, P]` (a 1×1 convolution):
+/// `[B, C', P]`. On the CPU with f32 one GEMM per pair, with the backward `dx[b] = Wᵀ·g[b]`,
+/// `dW = Σ_b g[b]·x[b]ᵀ` (candle's broadcast matmul reduces `dW` over the batch dimension
+/// with a slow non-last-dimension sum); elsewhere candle's broadcast matmul.
+pub fn channel_linear(w: &Tensor, x: &Tensor) -> Result<Tensor> {
+    let (b, c, _) = x.dims3()?;
+    let (_, wc) = w.dims2()?;
+    if wc != c {
+        candle_core::bail!("channel_linear: W {:?} for x {:?}", w.dims(), x.dims());
+    }
+    if cpu_f32(&[w, x]) {
+        return w.contiguous()?.apply_op2(&x.contiguous()?, ChannelLinear);
+    }
+    w.broadcast_left(b)?.matmul(x)
+}
+
+struct ChannelLinear;
+
+impl candle_core::CustomOp2 for ChannelLinear {
+    fn name(&self) -> &'static str {
+        "ic-channel-linear"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (co, c) = l1.shape().dims2()?;
+        let (b, _, p) = l2.shape().dims3()?;
+        let (w, x) = (
+            f32_slice(s1, l1, "channel_linear W")?,
+            f32_slice(s2, l2, "channel_linear x")?,
+        );
+        let mut y = vec![0.0f32; b * co * p];
+        for (yb, xb) in y.chunks_exact_mut(co * p).zip(x.chunks_exact(c * p)) {
+            matmul_par(
+                MatRef::rows(w, co, c, c),
+                MatRef::rows(xb, c, p, p),
+                yb,
+                p,
+                false,
+            );
+        }
+        Ok((CpuStorage::F32(y), Shape::from((b, co, p))))
+    }
+
+    fn bwd(
+        &self,
+        w: &Tensor,
+        x: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (co, c) = w.dims2()?;
+        let (b, _, p) = x.dims3()?;
+        let (wv, xv, g) = (to_vec(w)?, to_vec(x)?, to_vec(grad)?);
+        let wm = MatRef::rows(&wv, co, c, c);
+        let mut dx = vec![0.0f32; b * c * p];
+        let mut dw = vec![0.0f32; co * c];
+        for (bi, (dxb, gb)) in dx
+            .chunks_exact_mut(c * p)
+            .zip(g.chunks_exact(co * p))
+            .enumerate()
+        {
+            let gm = MatRef::rows(gb, co, p, p);
+            matmul_par(wm.t(), gm, dxb, p, false);
+            let xm = MatRef::rows(&xv[bi * c * p..(bi + 1) * c * p], c, p, p);
+            matmul_par(gm, xm.t(), &mut dw, c, bi > 0);
+        }
+        let dev = x.device();
+        Ok((
+            Some(Tensor::from_vec(dw, (co, c), dev)?),
+            Some(Tensor::from_vec(dx, (b, c, p), dev)?),
+        ))
+    }
+}

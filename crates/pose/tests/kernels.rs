@@ -67,6 +67,11 @@ fn fused_attention_matches_reference_in_value_and_gradient() {
     check(2, 250, 300, 16, 4, 0.7);
     check(1, 7, 33, 8, 2, 1.0);
     check(3, 19, 1, 6, 3, 1.0);
+    // Head widths that take the micro-kernels (multiples of 8: 32 as in the `cpu` preset, and
+    // 40 = 32 + 8 column groups), with ragged row tiles and key panels.
+    check(2, 45, 37, 64, 2, 0.5);
+    check(1, 67, 130, 80, 2, 0.5);
+    check(2, 5, 3, 16, 2, 1.0);
 }
 
 #[test]
@@ -215,5 +220,31 @@ fn fused_dense_matches_matmul_plus_bias() {
     );
     for (i, (a, b)) in fused.iter().zip(&reference).enumerate() {
         assert!(max_rel_diff(a, b) < 1e-5, "dense output/gradient {i}");
+    }
+}
+
+#[test]
+fn fused_channel_linear_matches_broadcast_matmul() {
+    let wv = Var::from_tensor(&randn((1, 12, 7), 1.0, 21).reshape((12, 7)).unwrap()).unwrap();
+    let x = Var::from_tensor(&randn((3, 7, 50), 1.0, 22)).unwrap();
+    let g = randn((3, 12, 50), 1.0, 23);
+    let run = |fused: bool| {
+        let y = if fused {
+            ic_pose::layers::channel_linear(&wv, &x).unwrap()
+        } else {
+            wv.broadcast_left(3).unwrap().matmul(&x).unwrap()
+        };
+        let grads = (&y * &g).unwrap().sum_all().unwrap().backward().unwrap();
+        vec![
+            flat(&y),
+            flat(grads.get(wv.as_tensor()).unwrap()),
+            flat(grads.get(x.as_tensor()).unwrap()),
+        ]
+    };
+    for (i, (a, b)) in run(true).iter().zip(&run(false)).enumerate() {
+        assert!(
+            max_rel_diff(a, b) < 1e-5,
+            "channel linear output/gradient {i}"
+        );
     }
 }
