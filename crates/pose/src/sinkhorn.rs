@@ -131,6 +131,21 @@ pub fn log_optimal_transport(
     lambda: f32,
     iterations: usize,
 ) -> Result<Tensor> {
+    log_optimal_transport_with(scores, alpha, lambda, iterations, true)
+}
+
+/// [`log_optimal_transport`] with the choice of the fused forward's inner loop: `scaled`
+/// (the default) exponentiates Z once and iterates matrix-vector products (exact rows recomputed
+/// in the log domain where the scaled sum underflows); otherwise every half-iteration takes one
+/// `exp` per entry in the log domain. Same results to f32 rounding; the log-domain loop is
+/// kept as the reference of the scaled one and for the benchmark.
+pub fn log_optimal_transport_with(
+    scores: &Tensor,
+    alpha: f32,
+    lambda: f32,
+    iterations: usize,
+    scaled: bool,
+) -> Result<Tensor> {
     check_args(scores, lambda)?;
     if !scores.device().is_cpu() || scores.dtype() != DType::F32 {
         return log_optimal_transport_reference(scores, alpha, lambda, iterations);
@@ -140,6 +155,7 @@ pub fn log_optimal_transport(
         alpha,
         lambda,
         iterations,
+        scaled,
         history: Mutex::new(None),
     })
 }
@@ -153,6 +169,8 @@ struct LogOt {
     alpha: f32,
     lambda: f32,
     iterations: usize,
+    /// Forward iterations in the scaled domain ([`forward_pair_scaled`]).
+    scaled: bool,
     history: Mutex<Option<Arc<History>>>,
 }
 
@@ -444,6 +462,194 @@ fn build_z(s: &[f32], m: usize, n: usize, alpha: f32, lambda: f32) -> (Vec<f32>,
     (z, zt)
 }
 
+/// Σ_j k_j · w_j (16 independent lanes, then summed).
+#[inline(always)]
+fn dot_generic<const F: bool>(k: &[f32], w: &[f32]) -> f32 {
+    let w = &w[..k.len()];
+    let kc = k.chunks_exact(LANES);
+    let wc = w.chunks_exact(LANES);
+    let (kr, wr) = (kc.remainder(), wc.remainder());
+    let mut acc = [0.0f32; LANES];
+    for (a, b) in kc.zip(wc) {
+        for l in 0..LANES {
+            acc[l] = crate::fastmath::fmadd::<F>(a[l], b[l], acc[l]);
+        }
+    }
+    let mut s: f32 = acc.iter().sum();
+    for (&a, &b) in kr.iter().zip(wr) {
+        s += a * b;
+    }
+    s
+}
+
+/// Smallest kernel sum trusted by the scaled iterations (see [`forward_pair`]).
+const SCALED_SUM_FLOOR: f32 = 1e-25;
+
+/// out[r] = base[r] − LSE_j(z[r, j] + add[j]) from the pre-exponentiated rows
+/// `kern[r, j] = exp(z[r, j] − zmax[r])` and `w[j] = exp(add[j] − amax)`:
+/// LSE = zmax + amax + ln Σ_j kern·w. A row whose sum falls below [`SCALED_SUM_FLOOR`] (its
+/// dominant terms underflowed) is recomputed exactly in the log domain from `z`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn scaled_rows_generic<const F: bool>(
+    kern: &[f32],
+    z: &[f32],
+    zmax: &[f32],
+    w: &[f32],
+    add: &[f32],
+    amax: f32,
+    base: &[f32],
+    out: &mut [f32],
+) {
+    let n = w.len();
+    for ((((kr, zr), &zm), &b), o) in kern
+        .chunks_exact(n)
+        .zip(z.chunks_exact(n))
+        .zip(zmax)
+        .zip(base)
+        .zip(out.iter_mut())
+    {
+        let sum = dot_generic::<F>(kr, w);
+        *o = if sum > SCALED_SUM_FLOOR && sum.is_finite() {
+            b - (zm + amax + sum.ln())
+        } else {
+            b - lse_row::<F>(zr, add)
+        };
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn scaled_rows_avx2(
+    kern: &[f32],
+    z: &[f32],
+    zmax: &[f32],
+    w: &[f32],
+    add: &[f32],
+    amax: f32,
+    base: &[f32],
+    out: &mut [f32],
+) {
+    scaled_rows_generic::<true>(kern, z, zmax, w, add, amax, base, out)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn scaled_rows(
+    kern: &[f32],
+    z: &[f32],
+    zmax: &[f32],
+    w: &[f32],
+    add: &[f32],
+    amax: f32,
+    base: &[f32],
+    out: &mut [f32],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2_fma() {
+        // SAFETY: the CPU supports AVX2 and FMA (checked at run time).
+        unsafe { scaled_rows_avx2(kern, z, zmax, w, add, amax, base, out) };
+        return;
+    }
+    scaled_rows_generic::<false>(kern, z, zmax, w, add, amax, base, out)
+}
+
+/// One half-iteration over all rows of `z` (row length `add.len()`), in parallel blocks.
+#[allow(clippy::too_many_arguments)]
+fn scaled_all_rows(
+    kern: &[f32],
+    z: &[f32],
+    zmax: &[f32],
+    add: &[f32],
+    base: &[f32],
+    out: &mut [f32],
+    w: &mut Vec<f32>,
+) {
+    let n = add.len();
+    let amax = add.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    w.clear();
+    w.extend(add.iter().map(|&a| exp_approx_any(a - amax)));
+    let w = &w[..];
+    let rows = out.len();
+    if rows * n <= GRAIN {
+        scaled_rows(kern, z, zmax, w, add, amax, base, out);
+        return;
+    }
+    let rpt = rows_per_task(n);
+    out.par_chunks_mut(rpt).enumerate().for_each(|(t, o)| {
+        let (r0, r1) = (t * rpt, t * rpt + o.len());
+        scaled_rows(
+            &kern[r0 * n..r1 * n],
+            &z[r0 * n..r1 * n],
+            &zmax[r0..r1],
+            w,
+            add,
+            amax,
+            &base[r0..r1],
+            o,
+        );
+    });
+}
+
+/// exp on the host's best path (for the few per-iteration potentials).
+fn exp_approx_any(x: f32) -> f32 {
+    exp_approx::<false>(x)
+}
+
+/// Row maxima of `z` (`rows × n`) and `exp(z − row max)`.
+fn row_kernel(z: &[f32], n: usize) -> (Vec<f32>, Vec<f32>) {
+    let zmax: Vec<f32> = z
+        .par_chunks(n)
+        .map(|r| r.iter().copied().fold(f32::NEG_INFINITY, f32::max))
+        .collect();
+    let mut kern = vec![0.0f32; z.len()];
+    kern.par_chunks_mut(n)
+        .zip(z.par_chunks(n))
+        .zip(&zmax)
+        .for_each(|((k, r), &m)| {
+            for (o, &v) in k.iter_mut().zip(r) {
+                *o = exp_approx_any(v - m);
+            }
+        });
+    (zmax, kern)
+}
+
+/// Runs the k iterations for one pair in the scaled domain (the default forward):
+/// `exp(Z − row max)` and `exp(Zᵀ − column max)` are computed once, and each half-iteration is
+/// a matrix-vector product with the exponentiated potentials instead of one `exp` per entry.
+/// Exactness: every term that underflows is below 2⁻¹²⁶ while the sum is above
+/// [`SCALED_SUM_FLOOR`], so the dropped mass is below `len · 1e-13` of the sum; a row or column
+/// whose sum is below the floor is recomputed in the log domain. The iterates equal
+/// [`forward_pair`]'s (the log-domain version) to f32 rounding, which the tests check.
+fn forward_pair_scaled(
+    z: &[f32],
+    zt: &[f32],
+    m: usize,
+    n: usize,
+    k: usize,
+    us: &mut [f32],
+    vs: &mut [f32],
+) {
+    let (m1, n1) = (m + 1, n + 1);
+    let (la, lb) = log_marginals(m, n);
+    let (zmax, kz) = row_kernel(z, n1);
+    let (ztmax, kzt) = row_kernel(zt, m1);
+    let zeros = vec![0.0f32; n1];
+    let mut w = Vec::with_capacity(m1.max(n1));
+    for t in 0..k {
+        let cur_u = &mut us[t * m1..];
+        let (done_v, cur_v) = vs.split_at_mut(t * n1);
+        let vprev: &[f32] = if t == 0 {
+            &zeros
+        } else {
+            &done_v[(t - 1) * n1..]
+        };
+        let u = &mut cur_u[..m1];
+        scaled_all_rows(&kz, z, &zmax, vprev, &la, u, &mut w);
+        scaled_all_rows(&kzt, zt, &ztmax, u, &lb, &mut cur_v[..n1], &mut w);
+    }
+}
+
 /// Runs the k iterations for one pair, filling `us` (`[k, M+1]`) and `vs` (`[k, N+1]`).
 fn forward_pair(
     z: &[f32],
@@ -623,7 +829,11 @@ impl LogOt {
         let mut vs = vec![0.0f32; b * vk];
         let job = |(((sp, op), up), vp): (((&[f32], &mut [f32]), &mut [f32]), &mut [f32])| {
             let (z, zt) = build_z(sp, m, n, self.alpha, self.lambda);
-            forward_pair(&z, &zt, m, n, k, up, vp);
+            if self.scaled {
+                forward_pair_scaled(&z, &zt, m, n, k, up, vp);
+            } else {
+                forward_pair(&z, &zt, m, n, k, up, vp);
+            }
             let (u, v) = if k > 0 {
                 (Some(&up[(k - 1) * m1..]), Some(&vp[(k - 1) * n1..]))
             } else {

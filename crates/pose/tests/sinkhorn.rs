@@ -311,3 +311,34 @@ fn non_contiguous_input_and_zero_iterations() {
     assert!(max_abs_diff(&g0, &h0) < 1e-6);
     assert!((v0[12] - ALPHA / LAMBDA).abs() < 1e-7);
 }
+
+#[test]
+fn scaled_forward_matches_log_domain_forward() {
+    use ic_pose::sinkhorn::log_optimal_transport_with;
+    // Ordinary, peaked and huge score ranges (the huge ones underflow the scaled sums and take
+    // the exact log-domain fallback), and a pair with −∞ entries.
+    for (scale, seed) in [(0.3f32, 31u64), (1.0, 32), (8.0, 33), (1e4, 34)] {
+        let s = scores(2, 70, 45, scale, seed);
+        let a = flat(&log_optimal_transport_with(&s, ALPHA, LAMBDA, K, true).unwrap());
+        let b = flat(&log_optimal_transport_with(&s, ALPHA, LAMBDA, K, false).unwrap());
+        let tol = 1e-4 * max_abs(&b).max(1.0);
+        assert!(
+            max_abs_diff(&a, &b) <= tol,
+            "scale {scale}: {} > {tol}",
+            max_abs_diff(&a, &b)
+        );
+    }
+    let mut v = randn(30 * 20, 1.0, 35);
+    for x in v.iter_mut().step_by(7) {
+        *x = f32::NEG_INFINITY;
+    }
+    let s = Tensor::from_vec(v, (1, 30, 20), &Device::Cpu).unwrap();
+    let a = flat(&log_optimal_transport_with(&s, ALPHA, LAMBDA, K, true).unwrap());
+    let b = flat(&log_optimal_transport_with(&s, ALPHA, LAMBDA, K, false).unwrap());
+    for (x, y) in a.iter().zip(&b) {
+        assert!(
+            x == y || (x - y).abs() <= 1e-4 * y.abs().max(1.0),
+            "{x} vs {y}"
+        );
+    }
+}
