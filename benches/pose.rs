@@ -23,6 +23,8 @@ fn points(seed: u64, n: usize) -> Vec<Vec3> {
 }
 
 fn baseline(c: &mut Criterion) {
+    // SAFETY: the first benchmark, before any pool thread exists (criterion runs on this thread).
+    unsafe { ic_pose::tune_candle_cpu_pool() };
     let points: Vec<Vec3> = (0..300_000).map(|i| Vec3::splat(i as f32 * 1e-5)).collect();
     c.bench_function("baseline/sum_300k_points", |b| {
         b.iter(|| black_box(&points).iter().copied().sum::<Vec3>())

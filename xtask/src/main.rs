@@ -91,6 +91,8 @@ const BENCHES: &[(&str, &str)] = &[
 ];
 
 fn main() -> std::process::ExitCode {
+    // SAFETY: first thing in main, before any other thread exists.
+    unsafe { ic_pose::tune_candle_cpu_pool() };
     let result = match Cli::parse().command {
         Cmd::Bench(args) => bench::run(args),
         Cmd::Test => test(),

@@ -11,6 +11,8 @@ use serde_json::json;
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // SAFETY: first thing in main, before any other thread exists.
+    unsafe { ic_pose::tune_candle_cpu_pool() };
     if let Some(t) = cli.threads {
         // SAFETY: first thing in main, before any other thread exists; rayon and candle read
         // it when they start their pools.

@@ -115,11 +115,19 @@ impl Dims {
     }
 }
 
-/// In place, each row of `s` (`rows × n`) becomes its softmax and `lse` receives the row's
-/// log-sum-exp; with `recompute`, `lse` is read instead and each row becomes `exp(s − lse)`
-/// (the probabilities again, in the backward pass).
+/// In place, each row of `s` (`rows × n`) becomes `exp(s − row max)` (unnormalised: the
+/// caller scales the row's product with `V` by `inv` = 1/Σ instead of the `n` entries), `lse`
+/// receives the row's log-sum-exp and `inv` the inverse sum; with `recompute`, `lse` is read
+/// instead and each row becomes `exp(s − lse)` (the probabilities, in the backward pass).
 #[inline(always)]
-fn softmax_rows_generic<const F: bool>(s: &mut [f32], n: usize, lse: &mut [f32], recompute: bool) {
+fn softmax_rows_generic<const F: bool>(
+    s: &mut [f32],
+    n: usize,
+    lse: &mut [f32],
+    inv: &mut [f32],
+    recompute: bool,
+) {
+    let mut inv = inv.iter_mut();
     for (row, l) in s.chunks_exact_mut(n).zip(lse.iter_mut()) {
         if recompute {
             let c = *l;
@@ -154,28 +162,31 @@ fn softmax_rows_generic<const F: bool>(s: &mut [f32], n: usize, lse: &mut [f32],
             *x = e;
             sum += e;
         }
-        let inv = 1.0 / sum;
-        for x in row.iter_mut() {
-            *x *= inv;
-        }
+        *inv.next().expect("one inverse sum per row") = 1.0 / sum;
         *l = m + sum.ln();
     }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn softmax_rows_avx2(s: &mut [f32], n: usize, lse: &mut [f32], recompute: bool) {
-    softmax_rows_generic::<true>(s, n, lse, recompute)
+unsafe fn softmax_rows_avx2(
+    s: &mut [f32],
+    n: usize,
+    lse: &mut [f32],
+    inv: &mut [f32],
+    recompute: bool,
+) {
+    softmax_rows_generic::<true>(s, n, lse, inv, recompute)
 }
 
-fn softmax_rows(s: &mut [f32], n: usize, lse: &mut [f32], recompute: bool) {
+fn softmax_rows(s: &mut [f32], n: usize, lse: &mut [f32], inv: &mut [f32], recompute: bool) {
     #[cfg(target_arch = "x86_64")]
     if has_avx2_fma() {
         // SAFETY: the CPU supports AVX2 and FMA (checked at run time).
-        unsafe { softmax_rows_avx2(s, n, lse, recompute) };
+        unsafe { softmax_rows_avx2(s, n, lse, inv, recompute) };
         return;
     }
-    softmax_rows_generic::<false>(s, n, lse, recompute)
+    softmax_rows_generic::<false>(s, n, lse, inv, recompute)
 }
 
 /// `ds = p ∘ (dp − D_row)` in place in `dp` (rows × n).
@@ -255,20 +266,18 @@ fn forward_head(
     let off = h * dh;
     let br = dims.block_rows();
     let mut s = vec![0.0f32; br * pk];
+    let mut inv = vec![0.0f32; br];
     let keys = HeadProducts::new(&k[off..], pk, dh, d);
     for r0 in (0..pq).step_by(br) {
         let r = br.min(pq - r0);
         let s = &mut s[..r * pk];
         keys.dot(&q[r0 * d + off..], r, s);
-        softmax_rows(s, pk, &mut lse[r0..r0 + r], false);
-        times_rows(
-            MatRef::rows(s, r, pk, pk),
-            &v[off..],
-            dh,
-            d,
-            &mut out[r0 * dh..],
-            false,
-        );
+        softmax_rows(s, pk, &mut lse[r0..r0 + r], &mut inv[..r], false);
+        let o = &mut out[r0 * dh..(r0 + r) * dh];
+        times_rows(MatRef::rows(s, r, pk, pk), &v[off..], dh, d, o, false);
+        for (row, &f) in o.chunks_exact_mut(dh).zip(&inv[..r]) {
+            row.iter_mut().for_each(|x| *x *= f);
+        }
     }
 }
 
@@ -304,7 +313,7 @@ fn backward_head(
         // P = exp(Q·Kᵀ − lse).
         keys.dot(qb, r, p);
         lse_blk[..r].copy_from_slice(&lse[r0..r0 + r]);
-        softmax_rows(p, pk, &mut lse_blk[..r], true);
+        softmax_rows(p, pk, &mut lse_blk[..r], &mut [], true);
         // dV += Pᵀ·dO.
         times_rows(MatRef::rows(p, r, pk, pk).t(), gb, dh, d, dv, r0 > 0);
         // dP = dO·Vᵀ;  D_i = Σ_c dO_ic O_ic;  dS = P ∘ (dP − D).

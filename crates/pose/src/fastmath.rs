@@ -163,6 +163,81 @@ fn matmul_with(
 mod tests {
     use super::*;
 
+    fn values(n: usize, seed: usize) -> Vec<f32> {
+        (0..n)
+            .map(|i| (((i * 7919 + seed * 104_729) % 1000) as f32) / 500.0 - 1.0)
+            .collect()
+    }
+
+    #[test]
+    fn micro_kernels_match_the_definition_on_ragged_shapes() {
+        // Rows not a multiple of the row tiles, keys not a multiple of the panel width, column
+        // groups 32 + 16 + 8, a row stride larger than the width, and a transposed left factor.
+        for &(rows, n, cols) in &[
+            (7usize, 21usize, 8usize),
+            (13, 35, 56),
+            (1, 1, 16),
+            (6, 16, 32),
+        ] {
+            let ars = cols + 3;
+            let a = values(rows * ars, 1);
+            let bm = values(n * ars, 2);
+            let mut panels = Vec::new();
+            pack_panels(&bm, n, cols, ars, &mut panels);
+            for fma in [false, true] {
+                let mut dst = vec![7.0f32; rows * (n + 2)];
+                if fma && has_avx2_fma() {
+                    dot_rows_panels(&a, rows, cols, ars, &panels, n, &mut dst, n + 2);
+                } else {
+                    dot_rows_panels_generic::<false>(
+                        &a,
+                        rows,
+                        cols,
+                        ars,
+                        &panels,
+                        n,
+                        &mut dst,
+                        n + 2,
+                    );
+                }
+                for r in 0..rows {
+                    for j in 0..n {
+                        let want: f32 = (0..cols).map(|c| a[r * ars + c] * bm[j * ars + c]).sum();
+                        assert!(
+                            (dst[r * (n + 2) + j] - want).abs() < 1e-4,
+                            "dot {rows}×{n}×{cols}"
+                        );
+                    }
+                    assert_eq!(dst[r * (n + 2) + n], 7.0, "dot wrote past its row");
+                }
+            }
+            // l: rows × n as the transpose of an n × rows matrix; b: n × cols.
+            let lt = values(n * rows, 3);
+            let l = MatRef::rows(&lt, n, rows, rows).t();
+            for accumulate in [false, true] {
+                let mut dst = vec![0.5f32; rows * (cols + 8)];
+                rows_times_matrix(l, &bm, cols, ars, &mut dst, cols + 8, accumulate);
+                for r in 0..rows {
+                    for c in 0..cols {
+                        let want: f32 = (0..n)
+                            .map(|t| lt[t * rows + r] * bm[t * ars + c])
+                            .sum::<f32>()
+                            + if accumulate { 0.5 } else { 0.0 };
+                        assert!(
+                            (dst[r * (cols + 8) + c] - want).abs() < 1e-4,
+                            "rows_times {rows}×{n}×{cols}"
+                        );
+                    }
+                    assert_eq!(
+                        dst[r * (cols + 8) + cols],
+                        0.5,
+                        "rows_times wrote past its row"
+                    );
+                }
+            }
+        }
+    }
+
     #[test]
     fn strided_matmul_matches_the_definition() {
         // a: 3×4 stored with row stride 6; b = cᵀ with c 5×4 row-major.
@@ -209,7 +284,7 @@ pub fn pack_panels(b: &[f32], rows: usize, cols: usize, rs: usize, out: &mut Vec
 }
 
 /// Rows of `a` per micro-tile of [`dot_rows_panels`].
-const DOT_ROWS: usize = 4;
+const DOT_ROWS: usize = 6;
 
 /// `dst[r][j] = Σ_c a[r][c] · b[j][c]` for `r < rows`, `j < n`, with `b` packed by
 /// [`pack_panels`] (`cols` columns); `a` row-major with row stride `ars`, `dst` with row
@@ -267,9 +342,13 @@ fn dot_rows_panels_generic<const F: bool>(
 const AXPY_ROWS: usize = 2;
 
 /// One column group of width `W` of [`rows_times_matrix`].
+///
+/// # Safety
+/// The caller ([`rows_times_matrix`]) has checked that every index of `l`, `b` (rows
+/// `0..l.cols`, columns `c0..c0 + W` with row stride `brs`) and `dst` is in bounds.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn rows_times_matrix_group<const F: bool, const W: usize>(
+unsafe fn rows_times_matrix_group<const F: bool, const W: usize>(
     l: MatRef,
     b: &[f32],
     brs: usize,
@@ -282,11 +361,12 @@ fn rows_times_matrix_group<const F: bool, const W: usize>(
     for r0 in (0..rows).step_by(AXPY_ROWS) {
         let rr = AXPY_ROWS.min(rows - r0);
         let mut acc = [[0.0f32; W]; AXPY_ROWS];
+        // SAFETY (the unchecked reads of `l` and `b`): in bounds by the caller's checks.
         if rr == AXPY_ROWS {
             for t in 0..inner {
-                let bv = &b[t * brs + c0..t * brs + c0 + W];
+                let bv: &[f32; W] = unsafe { &*(b.as_ptr().add(t * brs + c0) as *const [f32; W]) };
                 for (i, acc_i) in acc.iter_mut().enumerate() {
-                    let s = l.data[(r0 + i) * l.rs + t * l.cs];
+                    let s = unsafe { *l.data.get_unchecked((r0 + i) * l.rs + t * l.cs) };
                     for k in 0..W {
                         acc_i[k] = fmadd::<F>(s, bv[k], acc_i[k]);
                     }
@@ -294,10 +374,12 @@ fn rows_times_matrix_group<const F: bool, const W: usize>(
             }
         } else {
             for t in 0..inner {
-                let bv = &b[t * brs + c0..t * brs + c0 + W];
-                let s = l.data[r0 * l.rs + t * l.cs];
-                for k in 0..W {
-                    acc[0][k] = fmadd::<F>(s, bv[k], acc[0][k]);
+                let bv: &[f32; W] = unsafe { &*(b.as_ptr().add(t * brs + c0) as *const [f32; W]) };
+                for (i, acc_i) in acc.iter_mut().enumerate().take(rr) {
+                    let s = unsafe { *l.data.get_unchecked((r0 + i) * l.rs + t * l.cs) };
+                    for k in 0..W {
+                        acc_i[k] = fmadd::<F>(s, bv[k], acc_i[k]);
+                    }
                 }
             }
         }
@@ -314,8 +396,10 @@ fn rows_times_matrix_group<const F: bool, const W: usize>(
     }
 }
 
+/// # Safety
+/// As [`rows_times_matrix_group`], for all columns `0..cols`.
 #[inline(always)]
-fn rows_times_matrix_generic<const F: bool>(
+unsafe fn rows_times_matrix_generic<const F: bool>(
     l: MatRef,
     b: &[f32],
     cols: usize,
@@ -327,15 +411,18 @@ fn rows_times_matrix_generic<const F: bool>(
     let mut c0 = 0;
     while c0 < cols {
         let left = cols - c0;
-        if left >= 32 {
-            rows_times_matrix_group::<F, 32>(l, b, brs, c0, dst, drs, accumulate);
-            c0 += 32;
-        } else if left >= 16 {
-            rows_times_matrix_group::<F, 16>(l, b, brs, c0, dst, drs, accumulate);
-            c0 += 16;
-        } else {
-            rows_times_matrix_group::<F, 8>(l, b, brs, c0, dst, drs, accumulate);
-            c0 += 8;
+        // SAFETY: bounds checked by `rows_times_matrix` for all columns `0..cols`.
+        unsafe {
+            if left >= 32 {
+                rows_times_matrix_group::<F, 32>(l, b, brs, c0, dst, drs, accumulate);
+                c0 += 32;
+            } else if left >= 16 {
+                rows_times_matrix_group::<F, 16>(l, b, brs, c0, dst, drs, accumulate);
+                c0 += 16;
+            } else {
+                rows_times_matrix_group::<F, 8>(l, b, brs, c0, dst, drs, accumulate);
+                c0 += 8;
+            }
         }
     }
 }
@@ -367,7 +454,8 @@ unsafe fn rows_times_matrix_avx2(
     drs: usize,
     accumulate: bool,
 ) {
-    rows_times_matrix_generic::<true>(l, b, cols, brs, dst, drs, accumulate)
+    // SAFETY: forwarded from the caller.
+    unsafe { rows_times_matrix_generic::<true>(l, b, cols, brs, dst, drs, accumulate) }
 }
 
 /// `dst[r][j] = Σ_c a[r][c]·b[j][c]` (`a` is `rows × cols` with row stride `ars`; `panels` is
@@ -442,5 +530,6 @@ pub fn rows_times_matrix(
         unsafe { rows_times_matrix_avx2(l, b, cols, brs, dst, drs, accumulate) };
         return;
     }
-    rows_times_matrix_generic::<false>(l, b, cols, brs, dst, drs, accumulate)
+    // SAFETY: bounds checked above.
+    unsafe { rows_times_matrix_generic::<false>(l, b, cols, brs, dst, drs, accumulate) }
 }
