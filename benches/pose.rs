@@ -3,9 +3,14 @@
 //! (batch of the preset at its training sizes) → pairs/hour = batch · 3600 / step seconds.
 //!
 //! Points are random in the unit cube; timings do not depend on the values.
+//!
+//! `pose_kernels` times each fused CPU kernel against the tensor-op version it replaced (the
+//! "before"), in the same run, forward + backward at the `cpu` preset's training sizes
+//! (B = 4, 384 points, d = 128) and forward at 1024 inference points.
 
 use std::hint::black_box;
 
+use candle_core::Tensor;
 use criterion::{Criterion, criterion_group, criterion_main};
 use glam::Vec3;
 use ic_data::Assignment;
@@ -84,5 +89,107 @@ fn train_step(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, baseline, forward, train_step);
+/// Forward + backward of `f` (a weighted sum of its output as the loss).
+fn fwd_bwd(f: &dyn Fn() -> Tensor) -> candle_core::backprop::GradStore {
+    let y = f();
+    let w = y.ones_like().expect("ones");
+    (y * w)
+        .expect("mul")
+        .sum_all()
+        .expect("sum")
+        .backward()
+        .expect("backward")
+}
+
+fn kernels(c: &mut Criterion) {
+    use candle_core::{DType, Device, Module, Var};
+    use ic_pose::attention::{multi_head_attention, multi_head_attention_reference};
+    use ic_pose::dgcnn::{neighbour_max, neighbour_max_reference};
+    use ic_pose::layers::{Dense, LayerNorm};
+    let dev = Device::Cpu;
+    let randn = |shape: &[usize], seed: u64| {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let n: usize = shape.iter().product();
+        let v: Vec<f32> = (0..n).map(|_| rng.random_range(-1.0f32..1.0)).collect();
+        Var::from_vec(v, shape, &dev).expect("var")
+    };
+    let varmap = candle_nn::VarMap::new();
+    let vb = candle_nn::VarBuilder::from_varmap(&varmap, DType::F32, &dev);
+    let ln = LayerNorm::new(vb.pp("ln"), 128).expect("ln");
+    let up = Dense::new(vb.pp("up"), 128, 512, true).expect("dense");
+    let bn = ic_nn::norm::BatchNorm1::new(vb.pp("bn"), 128, 0.1).expect("bn");
+    let (w_up, b_up) = (
+        up.weight().clone(),
+        varmap.data().lock().unwrap()["up.bias"].clone(),
+    );
+    let x = randn(&[4, 384, 128], 1);
+    let xc = randn(&[4, 128, 384], 2);
+    let big = randn(&[1, 1024, 128], 3);
+    let graph: Vec<u32> = (0..4 * 384 * 16)
+        .map(|i| ((i * 7919) % 384) as u32)
+        .collect();
+    let graph = Tensor::from_vec(graph, (4, 384 * 16), &dev).expect("graph");
+
+    let mut g = c.benchmark_group("pose_kernels");
+    g.sample_size(10);
+    type Case<'a> = (
+        &'a str,
+        Box<dyn Fn() -> Tensor + 'a>,
+        Box<dyn Fn() -> Tensor + 'a>,
+    );
+    let train: Vec<Case> = vec![
+        (
+            "attention_4x384x384",
+            Box::new(|| multi_head_attention(&x, &x, &x, 4).unwrap()),
+            Box::new(|| multi_head_attention_reference(&x, &x, &x, 4).unwrap()),
+        ),
+        (
+            "layer_norm_4x384x128",
+            Box::new(|| ln.forward(&x).unwrap()),
+            Box::new(|| ln.forward_reference(&x).unwrap()),
+        ),
+        (
+            "dense_relu_128_512",
+            Box::new(|| up.forward_relu(&x).unwrap()),
+            Box::new(|| {
+                x.broadcast_matmul(&w_up.t().unwrap())
+                    .unwrap()
+                    .broadcast_add(b_up.as_tensor())
+                    .unwrap()
+                    .relu()
+                    .unwrap()
+            }),
+        ),
+        (
+            "batch_norm_leaky_4x128x384",
+            Box::new(|| bn.forward_leaky_relu(&xc, true, 0.2).unwrap()),
+            Box::new(|| {
+                let y = bn.forward_t(&xc, true).unwrap();
+                y.maximum(&(&y * 0.2).unwrap()).unwrap()
+            }),
+        ),
+        (
+            "neighbour_max_4x128x384_k16",
+            Box::new(|| neighbour_max(&xc, &graph, 16).unwrap()),
+            Box::new(|| neighbour_max_reference(&xc, &graph, 16).unwrap()),
+        ),
+    ];
+    for (name, fused, reference) in &train {
+        g.bench_function(format!("{name}_fwd_bwd/fused"), |b| {
+            b.iter(|| fwd_bwd(fused.as_ref()))
+        });
+        g.bench_function(format!("{name}_fwd_bwd/reference"), |b| {
+            b.iter(|| fwd_bwd(reference.as_ref()))
+        });
+    }
+    g.bench_function("attention_1024x1024_fwd/fused", |b| {
+        b.iter(|| multi_head_attention(&big, &big, &big, 4).unwrap())
+    });
+    g.bench_function("attention_1024x1024_fwd/reference", |b| {
+        b.iter(|| multi_head_attention_reference(&big, &big, &big, 4).unwrap())
+    });
+    g.finish();
+}
+
+criterion_group!(benches, baseline, forward, train_step, kernels);
 criterion_main!(benches);

@@ -1,6 +1,8 @@
-//! Criterion benchmarks of the Sinkhorn OT layer (`ic_pose::sinkhorn`): the fused CPU op vs the
-//! reference made of generic candle tensor ops, forward and forward + backward, for B = 1 and
-//! augmented sizes 513×385, 1025×769 and 2049×1537 (α = 0.01, λ = 0.5, k = 50).
+//! Criterion benchmarks of the Sinkhorn OT layer (`ic_pose::sinkhorn`): the fused CPU op
+//! (`fused`: scaled-domain forward, the default; `fused_log_domain`: one exp per entry and
+//! iteration, the fused op before the scaled forward) vs the reference made of generic candle
+//! tensor ops, forward and forward + backward, for B = 1 and augmented sizes 513×385,
+//! 1025×769 and 2049×1537 (α = 0.01, λ = 0.5, k = 50).
 //!
 //! Run with `cargo bench -p ic_pose --bench sinkhorn`; medians are in
 //! `target/criterion/sinkhorn_*/*/new/estimates.json`. Uses mimalloc like the training binary
@@ -8,7 +10,9 @@
 
 use candle_core::{Device, Tensor, Var};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
-use ic_pose::sinkhorn::{log_optimal_transport, log_optimal_transport_reference};
+use ic_pose::sinkhorn::{
+    log_optimal_transport, log_optimal_transport_reference, log_optimal_transport_with,
+};
 use rand::{Rng, SeedableRng};
 use std::hint::black_box;
 use std::time::Duration;
@@ -27,14 +31,21 @@ fn random(shape: (usize, usize, usize), seed: u64) -> Tensor {
     Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
 }
 
-fn impls() -> [(&'static str, OtFn); 2] {
+fn log_domain(s: &Tensor, alpha: f32, lambda: f32, k: usize) -> candle_core::Result<Tensor> {
+    log_optimal_transport_with(s, alpha, lambda, k, false)
+}
+
+fn impls() -> [(&'static str, OtFn); 3] {
     [
         ("fused", log_optimal_transport),
+        ("fused_log_domain", log_domain),
         ("reference", log_optimal_transport_reference),
     ]
 }
 
 fn forward(c: &mut Criterion) {
+    // SAFETY: the first benchmark, before any pool thread exists.
+    unsafe { ic_pose::tune_candle_cpu_pool() };
     let mut g = c.benchmark_group("sinkhorn_fwd");
     g.sample_size(10)
         .measurement_time(Duration::from_secs(4))
