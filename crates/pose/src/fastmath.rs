@@ -286,6 +286,33 @@ pub fn pack_panels(b: &[f32], rows: usize, cols: usize, rs: usize, out: &mut Vec
 /// Rows of `a` per micro-tile of [`dot_rows_panels`].
 const DOT_ROWS: usize = 6;
 
+/// One full `DOT_ROWS × PANEL` tile: no bounds checks (and so no panic path) in the loop, which
+/// lets the compiler keep the twelve accumulators in registers.
+///
+/// # Safety
+/// `a` must point at `DOT_ROWS` rows of `cols` readable values with row stride `ars`, and
+/// `panel` at `cols·PANEL` readable values.
+#[inline(always)]
+unsafe fn dot_tile<const F: bool>(
+    a: *const f32,
+    ars: usize,
+    cols: usize,
+    panel: *const f32,
+) -> [[f32; PANEL]; DOT_ROWS] {
+    let mut acc = [[0.0f32; PANEL]; DOT_ROWS];
+    for c in 0..cols {
+        // SAFETY: within the bounds promised by the caller.
+        let kv: &[f32; PANEL] = unsafe { &*(panel.add(c * PANEL) as *const [f32; PANEL]) };
+        for (i, acc_i) in acc.iter_mut().enumerate() {
+            let q = unsafe { *a.add(i * ars + c) };
+            for l in 0..PANEL {
+                acc_i[l] = fmadd::<F>(q, kv[l], acc_i[l]);
+            }
+        }
+    }
+    acc
+}
+
 /// `dst[r][j] = Σ_c a[r][c] · b[j][c]` for `r < rows`, `j < n`, with `b` packed by
 /// [`pack_panels`] (`cols` columns); `a` row-major with row stride `ars`, `dst` with row
 /// stride `drs`.
@@ -306,17 +333,9 @@ fn dot_rows_panels_generic<const F: bool>(
             let panel = &panels[p * cols * PANEL..(p + 1) * cols * PANEL];
             let mut acc = [[0.0f32; PANEL]; DOT_ROWS];
             if rr == DOT_ROWS {
-                let arow: [&[f32]; DOT_ROWS] =
-                    std::array::from_fn(|i| &a[(r0 + i) * ars..(r0 + i) * ars + cols]);
-                for c in 0..cols {
-                    let kv = &panel[c * PANEL..(c + 1) * PANEL];
-                    for i in 0..DOT_ROWS {
-                        let q = arow[i][c];
-                        for l in 0..PANEL {
-                            acc[i][l] = fmadd::<F>(q, kv[l], acc[i][l]);
-                        }
-                    }
-                }
+                // SAFETY: rows r0..r0 + DOT_ROWS of `a` (each `cols` long, stride `ars`) and the
+                // panel (`cols·PANEL` long) are in bounds (checked by `dot_rows_panels`).
+                acc = unsafe { dot_tile::<F>(a.as_ptr().add(r0 * ars), ars, cols, panel.as_ptr()) };
             } else {
                 for c in 0..cols {
                     let kv = &panel[c * PANEL..(c + 1) * PANEL];
@@ -341,6 +360,34 @@ fn dot_rows_panels_generic<const F: bool>(
 /// Rows of the output per micro-tile of [`rows_times_matrix`].
 const AXPY_ROWS: usize = 2;
 
+/// `R` rows (from `r0`) of `l` times the `inner × W` block of `b` at `b` (row stride `brs`),
+/// with no bounds checks in the loop (the accumulators stay in registers).
+///
+/// # Safety
+/// Rows `r0..r0 + R` of `l` and `inner` rows of `W` values at `b` must be readable.
+#[inline(always)]
+unsafe fn axpy_tile<const F: bool, const W: usize, const R: usize>(
+    l: MatRef,
+    r0: usize,
+    inner: usize,
+    b: *const f32,
+    brs: usize,
+) -> [[f32; W]; R] {
+    let mut acc = [[0.0f32; W]; R];
+    let lp = l.data.as_ptr();
+    for t in 0..inner {
+        // SAFETY: within the bounds promised by the caller.
+        let bv: &[f32; W] = unsafe { &*(b.add(t * brs) as *const [f32; W]) };
+        for (i, acc_i) in acc.iter_mut().enumerate() {
+            let s = unsafe { *lp.add((r0 + i) * l.rs + t * l.cs) };
+            for k in 0..W {
+                acc_i[k] = fmadd::<F>(s, bv[k], acc_i[k]);
+            }
+        }
+    }
+    acc
+}
+
 /// One column group of width `W` of [`rows_times_matrix`].
 ///
 /// # Safety
@@ -360,29 +407,20 @@ unsafe fn rows_times_matrix_group<const F: bool, const W: usize>(
     let (rows, inner) = (l.rows, l.cols);
     for r0 in (0..rows).step_by(AXPY_ROWS) {
         let rr = AXPY_ROWS.min(rows - r0);
-        let mut acc = [[0.0f32; W]; AXPY_ROWS];
-        // SAFETY (the unchecked reads of `l` and `b`): in bounds by the caller's checks.
-        if rr == AXPY_ROWS {
-            for t in 0..inner {
-                let bv: &[f32; W] = unsafe { &*(b.as_ptr().add(t * brs + c0) as *const [f32; W]) };
-                for (i, acc_i) in acc.iter_mut().enumerate() {
-                    let s = unsafe { *l.data.get_unchecked((r0 + i) * l.rs + t * l.cs) };
-                    for k in 0..W {
-                        acc_i[k] = fmadd::<F>(s, bv[k], acc_i[k]);
-                    }
-                }
-            }
-        } else {
-            for t in 0..inner {
-                let bv: &[f32; W] = unsafe { &*(b.as_ptr().add(t * brs + c0) as *const [f32; W]) };
+        // SAFETY: rows r0..r0 + rr of `l` and rows 0..inner of `b` (columns c0..c0 + W) are in
+        // bounds by the caller's checks.
+        let acc = unsafe {
+            if rr == AXPY_ROWS {
+                axpy_tile::<F, W, AXPY_ROWS>(l, r0, inner, b.as_ptr().add(c0), brs)
+            } else {
+                // The ragged last tile, one row at a time.
+                let mut acc = [[0.0f32; W]; AXPY_ROWS];
                 for (i, acc_i) in acc.iter_mut().enumerate().take(rr) {
-                    let s = unsafe { *l.data.get_unchecked((r0 + i) * l.rs + t * l.cs) };
-                    for k in 0..W {
-                        acc_i[k] = fmadd::<F>(s, bv[k], acc_i[k]);
-                    }
+                    *acc_i = axpy_tile::<F, W, 1>(l, r0 + i, inner, b.as_ptr().add(c0), brs)[0];
                 }
+                acc
             }
-        }
+        };
         for (i, row) in acc.iter().enumerate().take(rr) {
             let o = &mut dst[(r0 + i) * drs + c0..(r0 + i) * drs + c0 + W];
             if accumulate {
