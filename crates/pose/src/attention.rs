@@ -17,7 +17,7 @@ use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
 use crate::fastmath::{
-    MatRef, dot_rows_panels, exp_approx, has_avx2_fma, matmul, pack_panels, rows_times_matrix,
+    MatRef, dot_rows_panels, exp_approx, has_avx2_fma, matmul, pack_panels_view, rows_times_matrix,
 };
 use crate::layers::softmax_last;
 
@@ -198,11 +198,14 @@ fn softmax_grad_rows(p: &[f32], dp: &mut [f32], n: usize, dsum: &[f32]) {
     }
 }
 
-/// The products of one head, by the micro-kernels of [`crate::fastmath`] when the head width is
-/// a multiple of 8 (the presets: 32, 128), by the general GEMM otherwise.
+/// The products of one head with a point-major `[n, dh]` matrix `M` (`K` or `V`), by the
+/// micro-kernels of [`crate::fastmath`] when the head width is a multiple of 8 (the presets:
+/// 32, 128), by the general GEMM otherwise.
 struct HeadProducts<'a> {
-    /// `K` (or `V`) of the head packed for [`dot_rows_panels`], when the kernels apply.
+    /// `M` packed for [`dot_rows_panels`] (products `A·Mᵀ`), when the kernels apply.
     panels: Option<Vec<f32>>,
+    /// `Mᵀ` packed likewise (products `A·M`), when the kernels apply and it was asked for.
+    panels_t: Option<Vec<f32>>,
     rows: &'a [f32],
     n: usize,
     dh: usize,
@@ -210,15 +213,19 @@ struct HeadProducts<'a> {
 }
 
 impl<'a> HeadProducts<'a> {
-    /// `rows`: the `[n, d]` point-major matrix starting at the head's first column.
-    fn new(rows: &'a [f32], n: usize, dh: usize, d: usize) -> Self {
-        let panels = (dh % 8 == 0).then(|| {
+    /// `rows`: the `[n, d]` point-major matrix starting at the head's first column; `dot` and
+    /// `times` say which of the two products will be used.
+    fn new(rows: &'a [f32], n: usize, dh: usize, d: usize, dot: bool, times: bool) -> Self {
+        let kernels = dh % 8 == 0;
+        let view = MatRef::rows(rows, n, dh, d);
+        let pack = |v: MatRef| {
             let mut p = Vec::new();
-            pack_panels(rows, n, dh, d, &mut p);
+            pack_panels_view(v, &mut p);
             p
-        });
+        };
         HeadProducts {
-            panels,
+            panels: (kernels && dot).then(|| pack(view)),
+            panels_t: (kernels && times).then(|| pack(view.t())),
             rows,
             n,
             dh,
@@ -226,7 +233,8 @@ impl<'a> HeadProducts<'a> {
         }
     }
 
-    /// `dst[i][j] = Σ_c a[i][c]·self[j][c]` for the `r` rows of `a` (row stride `d`).
+    /// `dst[i][j] = Σ_c a[i][c]·M[j][c]` for the `r` rows of `a` (row stride `d`); `dst` is
+    /// `[r, n]`.
     fn dot(&self, a: &[f32], r: usize, dst: &mut [f32]) {
         let (n, dh, d) = (self.n, self.dh, self.d);
         match &self.panels {
@@ -238,6 +246,16 @@ impl<'a> HeadProducts<'a> {
                 n,
                 false,
             ),
+        }
+    }
+
+    /// `dst[i][c] = Σ_j a[i][j]·M[j][c]` for the `r` rows of `a` (`[r, n]`, contiguous);
+    /// `dst` is `[r, dh]`.
+    fn times(&self, a: &[f32], r: usize, dst: &mut [f32]) {
+        let (n, dh, d) = (self.n, self.dh, self.d);
+        match &self.panels_t {
+            Some(p) => dot_rows_panels(a, r, n, n, p, dh, dst, dh),
+            None => times_rows(MatRef::rows(a, r, n, n), self.rows, dh, d, dst, false),
         }
     }
 }
@@ -267,14 +285,15 @@ fn forward_head(
     let br = dims.block_rows();
     let mut s = vec![0.0f32; br * pk];
     let mut inv = vec![0.0f32; br];
-    let keys = HeadProducts::new(&k[off..], pk, dh, d);
+    let keys = HeadProducts::new(&k[off..], pk, dh, d, true, false);
+    let values = HeadProducts::new(&v[off..], pk, dh, d, false, true);
     for r0 in (0..pq).step_by(br) {
         let r = br.min(pq - r0);
         let s = &mut s[..r * pk];
         keys.dot(&q[r0 * d + off..], r, s);
         softmax_rows(s, pk, &mut lse[r0..r0 + r], &mut inv[..r], false);
         let o = &mut out[r0 * dh..(r0 + r) * dh];
-        times_rows(MatRef::rows(s, r, pk, pk), &v[off..], dh, d, o, false);
+        values.times(s, r, o);
         for (row, &f) in o.chunks_exact_mut(dh).zip(&inv[..r]) {
             row.iter_mut().for_each(|x| *x *= f);
         }
@@ -304,8 +323,8 @@ fn backward_head(
     let mut dp = vec![0.0f32; br * pk];
     let mut lse_blk = vec![0.0f32; br];
     let mut dsum = vec![0.0f32; br];
-    let keys = HeadProducts::new(&k[off..], pk, dh, d);
-    let values = HeadProducts::new(&v[off..], pk, dh, d);
+    let keys = HeadProducts::new(&k[off..], pk, dh, d, true, true);
+    let values = HeadProducts::new(&v[off..], pk, dh, d, true, false);
     for r0 in (0..pq).step_by(br) {
         let r = br.min(pq - r0);
         let (p, dp) = (&mut p[..r * pk], &mut dp[..r * pk]);
@@ -329,7 +348,7 @@ fn backward_head(
         softmax_grad_rows(p, dp, pk, &dsum[..r]);
         let dsm = MatRef::rows(dp, r, pk, pk);
         // dQ = dS·K;  dK += dSᵀ·Q.
-        times_rows(dsm, &k[off..], dh, d, &mut dq[r0 * dh..], false);
+        keys.times(dp, r, &mut dq[r0 * dh..(r0 + r) * dh]);
         times_rows(dsm.t(), qb, dh, d, dk, r0 > 0);
     }
 }

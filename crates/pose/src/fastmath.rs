@@ -270,15 +270,24 @@ pub const PANEL: usize = 16;
 /// Packs the rows of `b` (`rows × cols`, row stride `rs`) into panels of [`PANEL`] rows,
 /// transposed: `out[p·cols·PANEL + c·PANEL + l] = b[p·PANEL + l][c]` (zero past the last row).
 pub fn pack_panels(b: &[f32], rows: usize, cols: usize, rs: usize, out: &mut Vec<f32>) {
+    pack_panels_view(MatRef::rows(b, rows, cols, rs), out)
+}
+
+/// [`pack_panels`] of any strided view (e.g. the transpose of a point-major head).
+pub fn pack_panels_view(b: MatRef, out: &mut Vec<f32>) {
+    let (rows, cols) = (b.rows, b.cols);
     let panels = rows.div_ceil(PANEL);
     out.clear();
     out.resize(panels * cols * PANEL, 0.0);
+    if rows == 0 || cols == 0 {
+        return;
+    }
+    b.check();
     for r in 0..rows {
         let (p, l) = (r / PANEL, r % PANEL);
-        let src = &b[r * rs..r * rs + cols];
         let base = p * cols * PANEL + l;
-        for (c, &v) in src.iter().enumerate() {
-            out[base + c * PANEL] = v;
+        for c in 0..cols {
+            out[base + c * PANEL] = b.data[r * b.rs + c * b.cs];
         }
     }
 }
