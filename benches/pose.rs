@@ -191,5 +191,44 @@ fn kernels(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, baseline, forward, train_step, kernels);
+/// One registration with a shipped model (`models/pose-cpu-{ot,softmax}.safetensors`, skipped
+/// when absent): `PoseEstimator::estimate` on 1024 model and 768 observed points, one-shot
+/// (network + weighted Procrustes) and with the default ICP refinement. The points are one
+/// random cloud and a rotated, shifted subset of it, so the network sees a plausible pair.
+fn register(c: &mut Criterion) {
+    use ic_pose::Refine;
+    let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models");
+    let mut group = c.benchmark_group("pose_register_shipped");
+    group.sample_size(10);
+    let x = points(7, 1024);
+    let rot = glam::Quat::from_euler(glam::EulerRot::XYZ, 0.4, -0.3, 0.9);
+    let y: Vec<Vec3> = x[..768]
+        .iter()
+        .map(|p| rot * *p + Vec3::new(0.1, -0.2, 3.0))
+        .collect();
+    for head in ["ot", "softmax"] {
+        let path = models.join(format!("pose-cpu-{head}.safetensors"));
+        let Ok(mut est) = PoseEstimator::load(&path) else {
+            eprintln!(
+                "{} not found: skipping pose_register_shipped/{head}",
+                path.display()
+            );
+            continue;
+        };
+        for refine in [Refine::None, Refine::Icp] {
+            est.recovery.refine = refine;
+            let label = if refine == Refine::Icp {
+                "icp"
+            } else {
+                "one_shot"
+            };
+            group.bench_function(format!("{head}_{label}_1024x768"), |b| {
+                b.iter(|| black_box(est.estimate(&x, &y).is_ok()))
+            });
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(benches, baseline, forward, train_step, kernels, register);
 criterion_main!(benches);

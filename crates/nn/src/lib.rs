@@ -7,7 +7,8 @@
 //!   numbers;
 //! - [`norm::BatchNorm1`] / [`norm::BatchNorm2`]: batch normalisation laid out for fast
 //!   last-dimension reductions, running statistics stored beside the weights;
-//! - [`checkpoint`]: atomic safetensors writing with string metadata, and a header-only reader.
+//! - [`checkpoint`]: atomic safetensors writing with string metadata, and a header-only reader;
+//! - [`cpu`]: helpers of the fused CPU ops (storage slices, tensor values).
 //!
 //! ```
 //! use candle_core::{Device, Tensor};
@@ -22,6 +23,7 @@
 
 pub mod adam;
 pub mod checkpoint;
+pub mod cpu;
 pub mod norm;
 mod params;
 

@@ -6,6 +6,8 @@ use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor, V
 use candle_nn::{Init, VarBuilder};
 use rayon::prelude::*;
 
+use crate::cpu::{f32_slice, to_f32_vec};
+
 /// Batch normalisation for channel-first tensors `[B, C, L]`: statistics over B and L.
 ///
 /// Reduces over the last dimension first (fast in candle), then over the small batch
@@ -123,6 +125,9 @@ impl BatchNorm1 {
     }
 }
 
+/// (mean, biased variance) per channel.
+type ChannelStats = Arc<Vec<(f32, f32)>>;
+
 /// The fused `LeakyReLU(BN(x))` for `[B, C, L]`: per-channel statistics from the batch
 /// (`fixed` = None, training) or given (running statistics, inference). `batch` keeps the
 /// (mean, biased variance) of each channel of the last forward.
@@ -130,17 +135,7 @@ struct BnLeaky {
     eps: f32,
     slope: f32,
     fixed: Option<Vec<(f32, f32)>>,
-    batch: Arc<Mutex<Option<Arc<Vec<(f32, f32)>>>>>,
-}
-
-fn contiguous_f32<'a>(s: &'a CpuStorage, l: &Layout) -> Result<&'a [f32]> {
-    let CpuStorage::F32(v) = s else {
-        candle_core::bail!("batch norm: f32 expected")
-    };
-    let Some((a, z)) = l.contiguous_offsets() else {
-        candle_core::bail!("batch norm: contiguous input expected")
-    };
-    Ok(&v[a..z])
+    batch: Arc<Mutex<Option<ChannelStats>>>,
 }
 
 impl BnLeaky {
@@ -187,9 +182,9 @@ impl CustomOp3 for BnLeaky {
     ) -> Result<(CpuStorage, Shape)> {
         let (b, c, l) = l1.shape().dims3()?;
         let (x, w, bias) = (
-            contiguous_f32(s1, l1)?,
-            contiguous_f32(s2, l2)?,
-            contiguous_f32(s3, l3)?,
+            f32_slice(s1, l1, "batch norm x")?,
+            f32_slice(s2, l2, "batch norm weight")?,
+            f32_slice(s3, l3, "batch norm bias")?,
         );
         if w.len() != c || bias.len() != c {
             candle_core::bail!(
@@ -232,8 +227,7 @@ impl CustomOp3 for BnLeaky {
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let (b, c, l) = x.dims3()?;
-        let flat =
-            |t: &Tensor| -> Result<Vec<f32>> { t.to_dtype(DType::F32)?.flatten_all()?.to_vec1() };
+        let flat = to_f32_vec;
         let (xv, wv, yv, gv) = (flat(x)?, flat(w)?, flat(res)?, flat(grad)?);
         let stats: Vec<(f32, f32)> = match &self.fixed {
             Some(s) => s.clone(),

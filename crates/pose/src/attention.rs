@@ -20,6 +20,7 @@ use crate::fastmath::{
     MatRef, dot_rows_panels, exp_approx, has_avx2_fma, matmul, pack_panels_view, rows_times_matrix,
 };
 use crate::layers::softmax_last;
+use ic_nn::cpu::{f32_slice, to_f32_vec};
 
 fn check_args(
     q: &Tensor,
@@ -367,16 +368,6 @@ fn merge_heads(parts: &[Vec<f32>], b: usize, p: usize, d: usize, heads: usize) -
     out
 }
 
-fn slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [f32]> {
-    let CpuStorage::F32(v) = s else {
-        candle_core::bail!("attention: {what} must be f32")
-    };
-    let Some((a, z)) = l.contiguous_offsets() else {
-        candle_core::bail!("attention: {what} must be contiguous")
-    };
-    Ok(&v[a..z])
-}
-
 impl FusedAttention {
     fn run_forward(&self, q: &[f32], k: &[f32], v: &[f32], dims: Dims) -> (Vec<f32>, Vec<f32>) {
         let Dims {
@@ -434,9 +425,9 @@ impl CustomOp3 for FusedAttention {
             heads: self.heads,
         };
         let (q, k, v) = (
-            slice(s1, l1, "q")?,
-            slice(s2, l2, "k")?,
-            slice(s3, l3, "v")?,
+            f32_slice(s1, l1, "attention q")?,
+            f32_slice(s2, l2, "attention k")?,
+            f32_slice(s3, l3, "attention v")?,
         );
         let (out, lse) = self.run_forward(q, k, v, dims);
         *self.lse.lock().unwrap_or_else(|e| e.into_inner()) = Some(Arc::new(lse));
@@ -462,8 +453,7 @@ impl CustomOp3 for FusedAttention {
             heads,
         };
         let dh = dims.dh();
-        let flat =
-            |t: &Tensor| -> Result<Vec<f32>> { t.to_dtype(DType::F32)?.flatten_all()?.to_vec1() };
+        let flat = to_f32_vec;
         let (qv, kv, vv, ov, gv) = (flat(q)?, flat(k)?, flat(v)?, flat(res)?, flat(grad_res)?);
         let cached = self.lse.lock().unwrap_or_else(|e| e.into_inner()).clone();
         let lse = match cached {

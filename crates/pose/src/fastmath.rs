@@ -159,107 +159,6 @@ fn matmul_with(
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn values(n: usize, seed: usize) -> Vec<f32> {
-        (0..n)
-            .map(|i| (((i * 7919 + seed * 104_729) % 1000) as f32) / 500.0 - 1.0)
-            .collect()
-    }
-
-    #[test]
-    fn micro_kernels_match_the_definition_on_ragged_shapes() {
-        // Rows not a multiple of the row tiles, keys not a multiple of the panel width, column
-        // groups 32 + 16 + 8, a row stride larger than the width, and a transposed left factor.
-        for &(rows, n, cols) in &[
-            (7usize, 21usize, 8usize),
-            (13, 35, 56),
-            (1, 1, 16),
-            (6, 16, 32),
-        ] {
-            let ars = cols + 3;
-            let a = values(rows * ars, 1);
-            let bm = values(n * ars, 2);
-            let mut panels = Vec::new();
-            pack_panels(&bm, n, cols, ars, &mut panels);
-            for fma in [false, true] {
-                let mut dst = vec![7.0f32; rows * (n + 2)];
-                if fma && has_avx2_fma() {
-                    dot_rows_panels(&a, rows, cols, ars, &panels, n, &mut dst, n + 2);
-                } else {
-                    dot_rows_panels_generic::<false>(
-                        &a,
-                        rows,
-                        cols,
-                        ars,
-                        &panels,
-                        n,
-                        &mut dst,
-                        n + 2,
-                    );
-                }
-                for r in 0..rows {
-                    for j in 0..n {
-                        let want: f32 = (0..cols).map(|c| a[r * ars + c] * bm[j * ars + c]).sum();
-                        assert!(
-                            (dst[r * (n + 2) + j] - want).abs() < 1e-4,
-                            "dot {rows}×{n}×{cols}"
-                        );
-                    }
-                    assert_eq!(dst[r * (n + 2) + n], 7.0, "dot wrote past its row");
-                }
-            }
-            // l: rows × n as the transpose of an n × rows matrix; b: n × cols.
-            let lt = values(n * rows, 3);
-            let l = MatRef::rows(&lt, n, rows, rows).t();
-            for accumulate in [false, true] {
-                let mut dst = vec![0.5f32; rows * (cols + 8)];
-                rows_times_matrix(l, &bm, cols, ars, &mut dst, cols + 8, accumulate);
-                for r in 0..rows {
-                    for c in 0..cols {
-                        let want: f32 = (0..n)
-                            .map(|t| lt[t * rows + r] * bm[t * ars + c])
-                            .sum::<f32>()
-                            + if accumulate { 0.5 } else { 0.0 };
-                        assert!(
-                            (dst[r * (cols + 8) + c] - want).abs() < 1e-4,
-                            "rows_times {rows}×{n}×{cols}"
-                        );
-                    }
-                    assert_eq!(
-                        dst[r * (cols + 8) + cols],
-                        0.5,
-                        "rows_times wrote past its row"
-                    );
-                }
-            }
-        }
-    }
-
-    #[test]
-    fn strided_matmul_matches_the_definition() {
-        // a: 3×4 stored with row stride 6; b = cᵀ with c 5×4 row-major.
-        let a_data: Vec<f32> = (0..18).map(|i| (i as f32 * 0.37).sin()).collect();
-        let c_data: Vec<f32> = (0..20).map(|i| (i as f32 * 0.11).cos()).collect();
-        let a = MatRef::rows(&a_data, 3, 4, 6);
-        let b = MatRef::rows(&c_data, 5, 4, 4).t();
-        let mut dst = vec![1.0f32; 3 * 7];
-        matmul(a, b, &mut dst, 7, true);
-        for r in 0..3 {
-            for c in 0..5 {
-                let want: f32 = 1.0
-                    + (0..4)
-                        .map(|k| a_data[r * 6 + k] * c_data[c * 4 + k])
-                        .sum::<f32>();
-                assert!((dst[r * 7 + c] - want).abs() < 1e-5);
-            }
-            assert_eq!(dst[r * 7 + 5], 1.0, "untouched padding");
-        }
-    }
-}
-
 // ---------------------------------------------------------------------------------------------
 // Micro-kernels for products with a short inner or outer dimension (the attention heads: 32
 // channels in the `cpu` preset), where the general GEMM spends most of its time packing.
@@ -326,6 +225,7 @@ unsafe fn dot_tile<const F: bool>(
 /// [`pack_panels`] (`cols` columns); `a` row-major with row stride `ars`, `dst` with row
 /// stride `drs`.
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn dot_rows_panels_generic<const F: bool>(
     a: &[f32],
     rows: usize,
@@ -579,4 +479,105 @@ pub fn rows_times_matrix(
     }
     // SAFETY: bounds checked above.
     unsafe { rows_times_matrix_generic::<false>(l, b, cols, brs, dst, drs, accumulate) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn values(n: usize, seed: usize) -> Vec<f32> {
+        (0..n)
+            .map(|i| (((i * 7919 + seed * 104_729) % 1000) as f32) / 500.0 - 1.0)
+            .collect()
+    }
+
+    #[test]
+    fn micro_kernels_match_the_definition_on_ragged_shapes() {
+        // Rows not a multiple of the row tiles, keys not a multiple of the panel width, column
+        // groups 32 + 16 + 8, a row stride larger than the width, and a transposed left factor.
+        for &(rows, n, cols) in &[
+            (7usize, 21usize, 8usize),
+            (13, 35, 56),
+            (1, 1, 16),
+            (6, 16, 32),
+        ] {
+            let ars = cols + 3;
+            let a = values(rows * ars, 1);
+            let bm = values(n * ars, 2);
+            let mut panels = Vec::new();
+            pack_panels(&bm, n, cols, ars, &mut panels);
+            for fma in [false, true] {
+                let mut dst = vec![7.0f32; rows * (n + 2)];
+                if fma && has_avx2_fma() {
+                    dot_rows_panels(&a, rows, cols, ars, &panels, n, &mut dst, n + 2);
+                } else {
+                    dot_rows_panels_generic::<false>(
+                        &a,
+                        rows,
+                        cols,
+                        ars,
+                        &panels,
+                        n,
+                        &mut dst,
+                        n + 2,
+                    );
+                }
+                for r in 0..rows {
+                    for j in 0..n {
+                        let want: f32 = (0..cols).map(|c| a[r * ars + c] * bm[j * ars + c]).sum();
+                        assert!(
+                            (dst[r * (n + 2) + j] - want).abs() < 1e-4,
+                            "dot {rows}×{n}×{cols}"
+                        );
+                    }
+                    assert_eq!(dst[r * (n + 2) + n], 7.0, "dot wrote past its row");
+                }
+            }
+            // l: rows × n as the transpose of an n × rows matrix; b: n × cols.
+            let lt = values(n * rows, 3);
+            let l = MatRef::rows(&lt, n, rows, rows).t();
+            for accumulate in [false, true] {
+                let mut dst = vec![0.5f32; rows * (cols + 8)];
+                rows_times_matrix(l, &bm, cols, ars, &mut dst, cols + 8, accumulate);
+                for r in 0..rows {
+                    for c in 0..cols {
+                        let want: f32 = (0..n)
+                            .map(|t| lt[t * rows + r] * bm[t * ars + c])
+                            .sum::<f32>()
+                            + if accumulate { 0.5 } else { 0.0 };
+                        assert!(
+                            (dst[r * (cols + 8) + c] - want).abs() < 1e-4,
+                            "rows_times {rows}×{n}×{cols}"
+                        );
+                    }
+                    assert_eq!(
+                        dst[r * (cols + 8) + cols],
+                        0.5,
+                        "rows_times wrote past its row"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn strided_matmul_matches_the_definition() {
+        // a: 3×4 stored with row stride 6; b = cᵀ with c 5×4 row-major.
+        let a_data: Vec<f32> = (0..18).map(|i| (i as f32 * 0.37).sin()).collect();
+        let c_data: Vec<f32> = (0..20).map(|i| (i as f32 * 0.11).cos()).collect();
+        let a = MatRef::rows(&a_data, 3, 4, 6);
+        let b = MatRef::rows(&c_data, 5, 4, 4).t();
+        let mut dst = vec![1.0f32; 3 * 7];
+        matmul(a, b, &mut dst, 7, true);
+        for r in 0..3 {
+            for c in 0..5 {
+                let want: f32 = 1.0
+                    + (0..4)
+                        .map(|k| a_data[r * 6 + k] * c_data[c * 4 + k])
+                        .sum::<f32>();
+                assert!((dst[r * 7 + c] - want).abs() < 1e-5);
+            }
+            assert_eq!(dst[r * 7 + 5], 1.0, "untouched padding");
+        }
+    }
 }

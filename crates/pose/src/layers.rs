@@ -9,11 +9,12 @@
 
 use std::sync::{Arc, Mutex};
 
-use candle_core::{CpuStorage, CustomOp3, D, DType, Layout, Module, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp3, D, Layout, Module, Result, Shape, Tensor};
 use rayon::prelude::*;
 
 use crate::fastmath::{MatRef, matmul_par};
 use candle_nn::{Init, VarBuilder};
+use ic_nn::cpu::{all_cpu_f32 as cpu_f32, f32_slice, to_f32_vec};
 
 /// A dense layer `y = x·Wᵀ + b` over the last dimension of a tensor of any rank. The leading
 /// dimensions are flattened into one matrix product (faster than candle's broadcast matmul).
@@ -221,25 +222,6 @@ impl candle_core::CustomOp1 for SoftmaxLast {
     }
 }
 
-fn cpu_f32(ts: &[&Tensor]) -> bool {
-    ts.iter()
-        .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
-}
-
-fn f32_slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [f32]> {
-    let CpuStorage::F32(v) = s else {
-        candle_core::bail!("{what}: f32 expected")
-    };
-    let Some((a, z)) = l.contiguous_offsets() else {
-        candle_core::bail!("{what}: contiguous input expected")
-    };
-    Ok(&v[a..z])
-}
-
-fn to_vec(t: &Tensor) -> Result<Vec<f32>> {
-    t.to_dtype(DType::F32)?.flatten_all()?.to_vec1()
-}
-
 /// `y = x·Wᵀ + b` (then ReLU with `relu`) for `x` `[rows, in]`, `W` `[out, in]`, `b` `[out]`:
 /// one GEMM into a bias-filled output; backward `dx = g·W`, `dW = gᵀ·x`, `db = Σ_rows g` with
 /// `g` zeroed where the ReLU output is 0.
@@ -304,9 +286,9 @@ impl CustomOp3 for FusedDense {
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let (rows, in_dims) = x.dims2()?;
         let out_dims = w.dim(0)?;
-        let (xv, wv, mut g) = (to_vec(x)?, to_vec(w)?, to_vec(grad)?);
+        let (xv, wv, mut g) = (to_f32_vec(x)?, to_f32_vec(w)?, to_f32_vec(grad)?);
         if self.relu {
-            let y = to_vec(res)?;
+            let y = to_f32_vec(res)?;
             g.par_chunks_mut(1 << 14)
                 .zip(y.par_chunks(1 << 14))
                 .for_each(|(gc, yc)| {
@@ -352,11 +334,14 @@ impl CustomOp3 for FusedDense {
 /// Rows per rayon task of the row-wise kernels.
 const ROWS_PER_TASK: usize = 64;
 
+/// (mean, 1/σ) per row.
+type RowStats = Arc<Vec<(f32, f32)>>;
+
 /// LayerNorm over the last dimension in one pass per row; keeps each row's mean and 1/σ for
 /// the backward pass `dx = (ĝ − mean(ĝ) − x̂·mean(ĝ·x̂))/σ` with `ĝ = g ∘ w`.
 struct FusedLayerNorm {
     eps: f32,
-    stats: Mutex<Option<Arc<Vec<(f32, f32)>>>>,
+    stats: Mutex<Option<RowStats>>,
 }
 
 impl FusedLayerNorm {
@@ -428,7 +413,7 @@ impl CustomOp3 for FusedLayerNorm {
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let d = w.dim(0)?;
-        let (xv, wv, g) = (to_vec(x)?, to_vec(w)?, to_vec(grad)?);
+        let (xv, wv, g) = (to_f32_vec(x)?, to_f32_vec(w)?, to_f32_vec(grad)?);
         let cached = self.stats.lock().unwrap_or_else(|e| e.into_inner()).clone();
         let stats = match cached {
             Some(s) => s,
@@ -543,7 +528,7 @@ impl candle_core::CustomOp2 for ChannelLinear {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let (co, c) = w.dims2()?;
         let (b, _, p) = x.dims3()?;
-        let (wv, xv, g) = (to_vec(w)?, to_vec(x)?, to_vec(grad)?);
+        let (wv, xv, g) = (to_f32_vec(w)?, to_f32_vec(x)?, to_f32_vec(grad)?);
         let wm = MatRef::rows(&wv, co, c, c);
         let mut dx = vec![0.0f32; b * c * p];
         let mut dw = vec![0.0f32; co * c];

@@ -596,6 +596,30 @@ fn exp_approx_any(x: f32) -> f32 {
     exp_approx::<false>(x)
 }
 
+/// `out = exp(src − m)`, element-wise.
+#[inline(always)]
+fn exp_shifted_generic<const F: bool>(src: &[f32], m: f32, out: &mut [f32]) {
+    for (o, &v) in out.iter_mut().zip(src) {
+        *o = exp_approx::<F>(v - m);
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn exp_shifted_avx2(src: &[f32], m: f32, out: &mut [f32]) {
+    exp_shifted_generic::<true>(src, m, out)
+}
+
+fn exp_shifted(src: &[f32], m: f32, out: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2_fma() {
+        // SAFETY: the CPU supports AVX2 and FMA (checked at run time).
+        unsafe { exp_shifted_avx2(src, m, out) };
+        return;
+    }
+    exp_shifted_generic::<false>(src, m, out)
+}
+
 /// Row maxima of `z` (`rows × n`) and `exp(z − row max)`.
 fn row_kernel(z: &[f32], n: usize) -> (Vec<f32>, Vec<f32>) {
     let zmax: Vec<f32> = z
@@ -606,11 +630,7 @@ fn row_kernel(z: &[f32], n: usize) -> (Vec<f32>, Vec<f32>) {
     kern.par_chunks_mut(n)
         .zip(z.par_chunks(n))
         .zip(&zmax)
-        .for_each(|((k, r), &m)| {
-            for (o, &v) in k.iter_mut().zip(r) {
-                *o = exp_approx_any(v - m);
-            }
-        });
+        .for_each(|((k, r), &m)| exp_shifted(r, m, k));
     (zmax, kern)
 }
 
