@@ -26,8 +26,8 @@ pub enum Refine {
 /// case — so ICP is on by default.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RecoveryOptions {
-    /// Matches below this probability are dropped (if fewer than 3 remain, the 3+ most
-    /// probable matches are used regardless).
+    /// Matches below this probability are dropped (if fewer than 3 remain, or they are
+    /// degenerate for Procrustes, the 16 most probable matches are used regardless, then all).
     pub min_probability: f32,
     /// Weight each pair by its probability in Procrustes.
     pub weighted: bool,
@@ -66,34 +66,48 @@ pub fn recover_pose(
     matches: &[Match],
     options: &RecoveryOptions,
 ) -> Result<Recovered> {
-    let mut kept: Vec<&Match> = matches
+    // Candidate correspondence sets, tried in order until one gives a non-degenerate
+    // Procrustes: the matches kept by the bins and the probability floor; the 16 most probable
+    // matches regardless of both (the OT head can send all but a few collinear or coincident
+    // points to the bins); every match.
+    let kept: Vec<&Match> = matches
         .iter()
         .filter(|m| !m.outlier && m.probability >= options.min_probability)
         .collect();
-    if kept.len() < 3 {
-        kept = matches.iter().collect();
-        kept.sort_by(|a, b| b.probability.total_cmp(&a.probability));
-        kept.truncate(16);
-    }
-    if kept.len() < 3 {
-        return Err(PoseError::TooFewPoints {
-            what: "correspondences",
-            got: kept.len(),
-            needed: 3,
+    let mut by_probability: Vec<&Match> = matches.iter().collect();
+    by_probability.sort_by(|a, b| b.probability.total_cmp(&a.probability));
+    let top: Vec<&Match> = by_probability.iter().take(16).copied().collect();
+    let candidates = [kept, top, by_probability];
+    let mut first_error = None;
+    for set in candidates.iter().filter(|c| c.len() >= 3) {
+        let xs: Vec<Vec3> = set.iter().map(|m| model[m.model as usize]).collect();
+        let ys: Vec<Vec3> = set.iter().map(|m| observed[m.observed as usize]).collect();
+        let ws: Vec<f32> = set.iter().map(|m| m.probability.max(1e-12)).collect();
+        let pose = match procrustes(&xs, &ys, options.weighted.then_some(&ws[..])) {
+            Ok(p) => p,
+            Err(e) => {
+                first_error.get_or_insert(e);
+                continue;
+            }
+        };
+        let pose = if options.refine == Refine::Icp {
+            refine_icp(model, observed, &pose, options)?
+        } else {
+            pose
+        };
+        return Ok(Recovered {
+            pose,
+            inlier_count: set.len(),
+            assignment_confidence: ws.iter().sum::<f32>() / ws.len() as f32,
         });
     }
-    let xs: Vec<Vec3> = kept.iter().map(|m| model[m.model as usize]).collect();
-    let ys: Vec<Vec3> = kept.iter().map(|m| observed[m.observed as usize]).collect();
-    let ws: Vec<f32> = kept.iter().map(|m| m.probability.max(1e-12)).collect();
-    let confidence = ws.iter().sum::<f32>() / ws.len() as f32;
-    let mut pose = procrustes(&xs, &ys, options.weighted.then_some(&ws[..]))?;
-    if options.refine == Refine::Icp {
-        pose = refine_icp(model, observed, &pose, options)?;
-    }
-    Ok(Recovered {
-        pose,
-        inlier_count: kept.len(),
-        assignment_confidence: confidence,
+    Err(match first_error {
+        Some(e) => e.into(),
+        None => PoseError::TooFewPoints {
+            what: "correspondences",
+            got: matches.len(),
+            needed: 3,
+        },
     })
 }
 

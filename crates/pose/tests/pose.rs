@@ -347,6 +347,42 @@ fn perfect_matches_recover_the_pose() {
     assert_eq!(r.inlier_count, 48);
 }
 
+/// The OT head can keep only a few degenerate matches out of the bins (all on one model
+/// point: Procrustes has rank < 2); recovery then falls back to the most probable matches
+/// regardless of the bins instead of failing.
+#[test]
+fn degenerate_kept_matches_fall_back_to_the_most_probable() {
+    let p = pair(43, 64, 48, 48);
+    let mut matches: Vec<Match> = p
+        .assignment
+        .observed_to_model
+        .iter()
+        .enumerate()
+        .map(|(j, i)| Match {
+            observed: j as u32,
+            model: i.unwrap(),
+            probability: 0.5,
+            outlier: true,
+        })
+        .collect();
+    // Three "inliers", all the same observed and model point.
+    for m in matches.iter_mut().take(3) {
+        *m = Match {
+            observed: 0,
+            model: p.assignment.observed_to_model[0].unwrap(),
+            probability: 0.9,
+            outlier: false,
+        };
+    }
+    let one_shot = RecoveryOptions {
+        refine: ic_pose::Refine::None,
+        ..RecoveryOptions::default()
+    };
+    let r = recover_pose(&p.model, &p.observed, &matches, &one_shot).expect("fallback");
+    assert!(r.pose.rotation_angle_to(&p.pose).to_degrees() < 1e-2);
+    assert_eq!(r.inlier_count, 16, "the 16 most probable matches");
+}
+
 /// The OT loss on a hand-made log P̄ (M = 2, N = 3): observed 0 ↔ model 1 matched, observed 1
 /// and 2 unmatched, model 0 unmatched.
 #[test]
