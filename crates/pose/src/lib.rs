@@ -26,10 +26,14 @@
 //! `ic_data` samples and saves checkpoints (safetensors, configuration in the metadata,
 //! written atomically) from which a run resumes to the same numbers.
 //!
-//! Implementation notes (measured with candle 0.11 on CPU): LayerNorm, softmax and
-//! log-softmax are written from tensor ops (candle-nn's fused versions have no backward); the
-//! k-NN graph is computed in plain Rust ([`knn`]); DGCNN runs channel-first with the
-//! per-point products before the neighbour gather.
+//! Implementation notes (measured with candle 0.11 on CPU): on the CPU with f32 the hot
+//! layers are fused candle custom ops with hand-written backward passes — attention
+//! ([`attention`]), Dense and LayerNorm ([`layers`]), the EdgeConv gather-max and BN +
+//! LeakyReLU ([`dgcnn`]), Sinkhorn ([`sinkhorn`]) — each beside a tensor-op version that other
+//! devices use and the tests compare against (candle-nn's own fused LayerNorm and softmax
+//! have no backward); the k-NN graph is computed in plain Rust ([`knn`]); DGCNN runs
+//! channel-first with the per-point products before the neighbour gather. Call
+//! [`tune_candle_cpu_pool`] first thing in `main`.
 
 pub mod attention;
 pub mod checkpoint;

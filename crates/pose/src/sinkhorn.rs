@@ -591,7 +591,8 @@ fn scaled_all_rows(
     });
 }
 
-/// exp on the host's best path (for the few per-iteration potentials).
+/// The portable `exp`, for the M + N + 2 potentials of an iteration (too few for SIMD dispatch
+/// to matter).
 fn exp_approx_any(x: f32) -> f32 {
     exp_approx::<false>(x)
 }
