@@ -186,14 +186,7 @@ impl candle_core::CustomOp1 for SoftmaxLast {
         storage: &candle_core::CpuStorage,
         layout: &candle_core::Layout,
     ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let src = match storage {
-            candle_core::CpuStorage::F32(v) => v,
-            _ => candle_core::bail!("softmax_last: f32 only"),
-        };
-        let Some((start, end)) = layout.contiguous_offsets() else {
-            candle_core::bail!("softmax_last: contiguous input required")
-        };
-        let src = &src[start..end];
+        let src = f32_slice(storage, layout, "softmax_last")?;
         let dims = layout.shape().dims();
         let n = *dims.last().unwrap_or(&1);
         let mut dst = vec![0f32; src.len()];
