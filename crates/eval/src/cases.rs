@@ -61,10 +61,20 @@ fn format_error(path: &Path, message: impl Into<String>) -> EvalError {
     }
 }
 
+/// The largest case or results file read (a results file of 100 000 lines is ≈ 50 MB).
+const MAX_TEXT_BYTES: u64 = 1 << 30;
+
 fn read_text(path: &Path) -> Result<String, EvalError> {
-    std::fs::read_to_string(path).map_err(|source| EvalError::Io {
+    let io = |source| EvalError::Io {
         path: path.to_path_buf(),
         source,
+    };
+    let bytes = ic_geometry::io::read_bounded(path, MAX_TEXT_BYTES).map_err(io)?;
+    String::from_utf8(bytes).map_err(|e| {
+        io(std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!("not UTF-8 text: {e}"),
+        ))
     })
 }
 

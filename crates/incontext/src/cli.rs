@@ -17,7 +17,9 @@ Units: meshes are in the depth map's units after the camera's depth_scale, i.e. 
 (--model-unit-mm for other units). Poses map model to camera coordinates, x_cam = R·x + t,
 R row-major in files.
 
-Exit codes: 0 ok, 2 bad input (flags, files: the message names the file), 3 object not found,
+Exit codes: 0 ok, 2 bad input (flags, files: the message names the file), 3 object not found
+(including a best pose with confidence below 0.25), 4 register's pose is uncertain (confidence
+0.25-0.6; written with \"verdict\": \"uncertain\"), 130 interrupted (no partial file left),
 1 internal error. With --json, stdout holds one JSON object: the result, or
 {\"error\": …, \"kind\": …, \"exit_code\": …}.";
 
@@ -25,8 +27,8 @@ Exit codes: 0 ok, 2 bad input (flags, files: the message names the file), 3 obje
 #[derive(Parser, Debug)]
 #[command(name = "incontext", version, after_help = AFTER_HELP)]
 pub struct Cli {
-    /// Compute threads (default: all cores).
-    #[arg(long, global = true, help_heading = "Global options")]
+    /// Compute threads (default: all logical CPUs; more than that is capped to it).
+    #[arg(long, global = true, help_heading = "Global options", value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub threads: Option<usize>,
     /// Seed of every random choice (point sampling; the demo's object and view).
     #[arg(

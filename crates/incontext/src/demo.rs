@@ -72,9 +72,17 @@ pub fn run(args: &DemoArgs, seed: u64) -> Result<Value> {
     // The files a user would have, in millimetres.
     let t = Instant::now();
     let out = &args.out;
+    let files = DemoFiles::new(out);
+    let ins: Vec<crate::outputs::Named> = [
+        ("--pose-model", &args.networks.pose_model),
+        ("--seg-model", &args.networks.seg_model),
+    ]
+    .iter()
+    .filter_map(|(what, p)| p.as_deref().map(|p| crate::outputs::Named::new(what, p)))
+    .collect();
+    crate::outputs::check_outputs(&ins, &files.named())?;
     inputs::create_dir(out)?;
     let unit = ROOM_UNIT_MM;
-    let files = DemoFiles::new(out);
     let mesh_mm = Mesh {
         vertices: object
             .mesh
@@ -177,6 +185,7 @@ pub fn run(args: &DemoArgs, seed: u64) -> Result<Value> {
         "pose": outcome.report["pose"],
         "truth": pose_json(&truth_mm),
         "confidence": r.confidence,
+        "verdict": r.verdict,
         "details": outcome.report["details"],
         "config": outcome.report["config"],
         "timings_ms": timings,
@@ -210,6 +219,21 @@ impl DemoFiles {
         }
     }
 
+    /// Every file the demo writes, with what it is.
+    fn named(&self) -> Vec<crate::outputs::Named<'_>> {
+        use crate::outputs::Named;
+        vec![
+            Named::new("the demo's model.ply", &self.model),
+            Named::new("the demo's depth.png", &self.depth),
+            Named::new("the demo's camera.json", &self.camera),
+            Named::new("the demo's mask_gt.png", &self.mask),
+            Named::new("the demo's gt_pose.json", &self.gt_pose),
+            Named::new("the demo's pose.json", &self.pose),
+            Named::new("the demo's overlay.png", &self.overlay),
+            Named::new("the demo's aligned.ply", &self.ply),
+        ]
+    }
+
     fn json(&self) -> Value {
         json!({
             "model": self.model, "depth": self.depth, "camera": self.camera, "mask_gt": self.mask,
@@ -232,7 +256,7 @@ pub fn summary_text(report: &Value) -> String {
         report["segmentation"].as_str().unwrap_or("?"),
     );
     s.push_str(&format!(
-        "errors: rotation {:.2}° (one-shot {:.2}°), translation {:.1} mm ({:.4} normalised), ADD-S {:.1} mm = {:.3} of the diameter; confidence {:.3}\n",
+        "errors: rotation {:.2}° (one-shot {:.2}°), translation {:.1} mm ({:.4} normalised), ADD-S {:.1} mm = {:.3} of the diameter; confidence {:.3} (verdict {})\n",
         f(&e["rotation_deg"]),
         f(&e["one_shot_rotation_deg"]),
         f(&e["translation_mm"]),
@@ -240,6 +264,7 @@ pub fn summary_text(report: &Value) -> String {
         f(&e["add_s_mm"]),
         f(&e["add_s_over_diameter"]),
         f(&report["confidence"]),
+        report["verdict"].as_str().unwrap_or("?"),
     ));
     let t = &report["timings_ms"];
     s.push_str(&format!(

@@ -70,12 +70,16 @@ pub struct EvalArgs {
     /// Pose hypotheses per registration (1 = the paper's one-shot pipeline; see `register`).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub hypotheses: u32,
+    /// Rotation hypotheses of the `-verify` methods: 12, 24 (default) or 60.
+    #[arg(long, value_parser = crate::register::parse_rotations)]
+    pub rotations: Option<usize>,
 }
 
 impl EvalArgs {
     fn pipeline_options(&self) -> PipelineOptions {
         PipelineOptions {
             hypotheses: self.hypotheses as usize,
+            rotations: self.rotations.unwrap_or(1),
             ..PipelineOptions::default()
         }
     }
@@ -87,19 +91,28 @@ pub struct Method {
     pub name: String,
     pub head: Head,
     pub refine: Refine,
+    /// Rotation hypotheses verified by render-and-compare (`-verify` methods: the 24
+    /// rotations of the cube group, or `--rotations`); `None`: the pipeline's setting.
+    pub rotations: Option<usize>,
 }
+
+/// The rotations of the `-verify` methods unless `--rotations` says otherwise.
+pub const VERIFY_ROTATIONS: usize = 24;
 
 impl std::str::FromStr for Method {
     type Err = CliError;
     fn from_str(s: &str) -> Result<Method> {
-        let (head, refine) = match s.trim() {
-            "ours-softmax" => (Head::Softmax, Refine::None),
-            "ours-softmax-icp" => (Head::Softmax, Refine::Icp),
-            "ours-ot" => (Head::Ot, Refine::None),
-            "ours-ot-icp" => (Head::Ot, Refine::Icp),
+        let (head, refine, verify) = match s.trim() {
+            "ours-softmax" => (Head::Softmax, Refine::None, false),
+            "ours-softmax-icp" => (Head::Softmax, Refine::Icp, false),
+            "ours-softmax-verify" => (Head::Softmax, Refine::Icp, true),
+            "ours-ot" => (Head::Ot, Refine::None, false),
+            "ours-ot-icp" => (Head::Ot, Refine::Icp, false),
+            "ours-ot-verify" => (Head::Ot, Refine::Icp, true),
             other => {
                 return Err(CliError::input(format!(
-                    "--method {other:?}: expected ours-softmax, ours-softmax-icp, ours-ot or ours-ot-icp"
+                    "--method {other:?}: expected ours-softmax, ours-softmax-icp, ours-softmax-verify, \
+                     ours-ot, ours-ot-icp or ours-ot-verify"
                 )));
             }
         };
@@ -107,6 +120,7 @@ impl std::str::FromStr for Method {
             name: s.trim().to_string(),
             head,
             refine,
+            rotations: verify.then_some(VERIFY_ROTATIONS),
         })
     }
 }
@@ -128,7 +142,8 @@ pub fn parse_methods(names: &[String]) -> Result<Vec<Method>> {
 
 /// One pipeline per head the methods need.
 pub struct Pipelines {
-    by_head: BTreeMap<&'static str, Pipeline>,
+    /// Each head's pipeline and the `--rotations` it was loaded with.
+    by_head: BTreeMap<&'static str, (Pipeline, usize)>,
 }
 
 impl Pipelines {
@@ -145,25 +160,31 @@ impl Pipelines {
                 continue;
             }
             let p = Pipeline::load(pose_model, Some(m.head), seg_model, with_seg, options)?;
-            by_head.insert(m.head.as_str(), p);
+            by_head.insert(m.head.as_str(), (p, options.rotations));
         }
         Ok(Pipelines { by_head })
     }
 
-    /// The pipeline of `method`, set to its refinement.
+    /// The pipeline of `method`, set to its refinement and rotation hypotheses (`-verify`
+    /// methods: `--rotations` when above 1, else [`VERIFY_ROTATIONS`]; other methods: 1).
     pub fn get(&mut self, method: &Method) -> &Pipeline {
-        let p = self
+        let (p, base) = self
             .by_head
             .get_mut(method.head.as_str())
             .expect("a pipeline was loaded for every method's head");
         p.options.refine = method.refine;
+        p.options.rotations = match method.rotations {
+            Some(_) if *base > 1 => *base,
+            Some(default) => default,
+            None => 1,
+        };
         p
     }
 
     pub fn describe(&self) -> Value {
         self.by_head
             .iter()
-            .map(|(h, p)| (h.to_string(), p.describe()))
+            .map(|(h, (p, _))| (h.to_string(), p.describe()))
             .collect::<serde_json::Map<_, _>>()
             .into()
     }
@@ -341,6 +362,14 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from("results.jsonl"));
+    let ins: Vec<crate::outputs::Named> = [
+        ("--pose-model", &args.pose_model),
+        ("--seg-model", &args.seg_model),
+    ]
+    .iter()
+    .filter_map(|(what, p)| p.as_deref().map(|p| crate::outputs::Named::new(what, p)))
+    .collect();
+    crate::outputs::check_outputs(&ins, &[crate::outputs::Named::new("--out", &out)])?;
     let mut dirs = case_dirs(root)?;
     if let Some(n) = args.limit {
         dirs.truncate(n);
@@ -409,11 +438,13 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
                             if args.details {
                                 rec.details = Some(json!({
                                     "confidence": r.confidence,
+                                    "verdict": r.verdict,
                                     "segmentation": r.segmentation,
                                     "object_points": r.object_points,
                                     "object_voxels": r.object_voxels,
                                     "inlier_count": r.inlier_count,
                                     "icp": r.icp,
+                                    "verification": r.verification,
                                     "stage_seconds": r.seconds,
                                 }));
                             }
@@ -438,6 +469,10 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
                     .map_err(|e| CliError::internal(format!("serialising a result: {e}")))?,
             );
         }
+        write_lines(&out, &lines)?;
+    }
+    if lines.is_empty() {
+        // Nothing to register (e.g. --limit 0): the results file exists, and is empty.
         write_lines(&out, &lines)?;
     }
     let medians: BTreeMap<String, f64> = seconds
@@ -633,6 +668,7 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                         rec["ok"] = json!(true);
                         rec["errors"] = json!(e);
                         rec["confidence"] = json!(r.confidence);
+                        rec["verdict"] = json!(r.verdict);
                     }
                     Err(err) => {
                         tracing::debug!(image = i, method = %m.name, "failed: {err}");

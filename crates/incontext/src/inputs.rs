@@ -23,11 +23,21 @@ fn bad(path: &Path, message: impl std::fmt::Display) -> CliError {
     CliError::input(format!("{}: {message}", path.display()))
 }
 
-/// Reads and parses a JSON file.
+/// The largest JSON file read (camera, pose, case ground truth): 64 MiB, far above any real
+/// one (a BOP `scene_camera.json` of 1000 images is ≈ 300 kB).
+pub const MAX_JSON_BYTES: u64 = 64 << 20;
+
+/// The farthest depth accepted, in mm (10 km). Finite values beyond it (e.g. a renderer's
+/// 3e38 background marker) are read as missing returns.
+pub const MAX_DEPTH_MM: f32 = 1e7;
+
+/// Reads and parses a JSON file (a regular file of at most [`MAX_JSON_BYTES`]).
 pub fn read_json(path: &Path, what: &str) -> Result<Value> {
-    let text = std::fs::read_to_string(path)
+    let bytes = ic_geometry::io::read_bounded(path, MAX_JSON_BYTES)
         .map_err(|e| bad(path, format!("cannot read the {what}: {e}")))?;
-    serde_json::from_str(&text).map_err(|e| bad(path, format!("the {what} is not valid JSON: {e}")))
+    let text = std::str::from_utf8(&bytes)
+        .map_err(|e| bad(path, format!("the {what} is not UTF-8 text: {e}")))?;
+    serde_json::from_str(text).map_err(|e| bad(path, format!("the {what} is not valid JSON: {e}")))
 }
 
 fn number(v: &Value, path: &Path, key: &str) -> Result<f64> {
@@ -66,6 +76,122 @@ fn size_field(v: &Value, path: &Path, key: &str) -> Result<Option<u32>> {
     }
 }
 
+/// `cam_K` must be a pinhole matrix `[fx, 0, cx; 0, fy, cy; 0, 0, 1]`: skew and a bottom row
+/// other than `[0, 0, 1]` are refused rather than dropped (the pipeline's projection has
+/// neither). Entries within 1e-9 (relative to the focal length) of the expected zeros pass.
+fn check_k_shape(k: &[f64], path: &Path) -> Result<()> {
+    let scale = k[0].abs().max(k[4].abs()).max(1.0);
+    let zero = |x: f64| x.abs() <= 1e-9 * scale;
+    if !zero(k[1]) {
+        return Err(bad(
+            path,
+            format!(
+                "cam_K has skew (row 0, column 1 = {}): only zero skew is supported; \
+                 undistort and rectify the depth map first",
+                k[1]
+            ),
+        ));
+    }
+    if !zero(k[3]) {
+        return Err(bad(
+            path,
+            format!(
+                "cam_K row 1, column 0 is {}, expected 0 (cam_K is [fx, 0, cx, 0, fy, cy, 0, 0, 1], row-major)",
+                k[3]
+            ),
+        ));
+    }
+    if !(k[6].abs() <= 1e-9 && k[7].abs() <= 1e-9 && (k[8] - 1.0).abs() <= 1e-9) {
+        return Err(bad(
+            path,
+            format!(
+                "cam_K's bottom row is [{}, {}, {}], expected [0, 0, 1] (cam_K is row-major; \
+                 is it transposed, or a projection matrix?)",
+                k[6], k[7], k[8]
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Checks that intrinsics describe a plausible pinhole camera for an image of `width ×
+/// height` pixels (`size_given`: the size came from the camera file; else from the depth map):
+/// - the image fits the reader's limits ([`ic_render::io::check_image_size`]);
+/// - each field of view lies between 0.05° and 170° (focal lengths are in pixels: a
+///   640-pixel-wide Kinect has fx ≈ 525);
+/// - fx / fy lies within [1/4, 4] (pixels are nearly square on every depth sensor);
+/// - the principal point lies within the image extended by half its size on each side; when
+///   the size came from the depth map, within the middle half of it (far from the centre means
+///   the intrinsics belong to another resolution).
+pub fn check_intrinsics(
+    path: &Path,
+    spec: &CameraSpec,
+    width: u32,
+    height: u32,
+    size_given: bool,
+) -> Result<()> {
+    let (w, h) = (width as f64, height as f64);
+    if ic_render::io::check_image_size(path, width as u64, height as u64).is_err() {
+        return Err(bad(
+            path,
+            format!(
+                "the image size {width}×{height} is larger than the largest supported ({} per side, {} pixels in all)",
+                ic_render::io::MAX_IMAGE_SIDE,
+                ic_render::io::MAX_IMAGE_PIXELS
+            ),
+        ));
+    }
+    let fov = |f: f64, side: f64| 2.0 * (side / (2.0 * f)).atan().to_degrees();
+    for (name, f, side, axis) in [
+        ("fx", spec.fx, w, "horizontal"),
+        ("fy", spec.fy, h, "vertical"),
+    ] {
+        let deg = fov(f, side);
+        if !(0.05..=170.0).contains(&deg) {
+            return Err(bad(
+                path,
+                format!(
+                    "{name} = {f} pixels gives a {axis} field of view of {deg:.3}° over {side} pixels \
+                     (expected 0.05°–170°): focal lengths are in pixels (a 640-pixel-wide Kinect has fx ≈ 525)"
+                ),
+            ));
+        }
+    }
+    let ratio = spec.fx / spec.fy;
+    if !(0.25..=4.0).contains(&ratio) {
+        return Err(bad(
+            path,
+            format!(
+                "fx / fy = {ratio:.3} (fx = {}, fy = {}): depth sensors have nearly square pixels; \
+                 are fx and fy in the same units?",
+                spec.fx, spec.fy
+            ),
+        ));
+    }
+    let (cx, cy) = (spec.cx, spec.cy);
+    if size_given {
+        if !((-0.5 * w..=1.5 * w).contains(&cx) && (-0.5 * h..=1.5 * h).contains(&cy)) {
+            return Err(bad(
+                path,
+                format!(
+                    "the principal point ({cx}, {cy}) lies far outside the {width}×{height} image \
+                     (cx, cy are in pixels, measured from the top-left corner)"
+                ),
+            ));
+        }
+    } else if (cx - (w - 1.0) / 2.0).abs() > w / 4.0 || (cy - (h - 1.0) / 2.0).abs() > h / 4.0 {
+        return Err(bad(
+            path,
+            format!(
+                "the principal point ({cx}, {cy}) lies far from the centre of the {width}×{height} \
+                 depth map: the intrinsics are probably for another image size; give width and \
+                 height in the camera file"
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// The fields of a camera JSON.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CameraSpec {
@@ -99,6 +225,7 @@ pub fn parse_camera(v: &Value, path: &Path) -> Result<CameraSpec> {
                 ),
             ));
         }
+        check_k_shape(&k, path)?;
         (k[0], k[4], k[2], k[5])
     } else if let Some((k, _)) = v
         .as_object()
@@ -177,6 +304,7 @@ pub fn read_camera(
         Some(s) => s,
         None => fallback_size()?,
     };
+    check_intrinsics(path, &c, w, h, c.size.is_some())?;
     let intrinsics = Intrinsics::new(c.fx, c.fy, c.cx, c.cy, w, h).map_err(|e| bad(path, e))?;
     Ok(CameraFile {
         intrinsics,
@@ -205,17 +333,13 @@ fn is_exr(path: &Path) -> Result<bool> {
 }
 
 /// Size of a depth file without decoding all of it (PNG header; EXR is decoded).
+/// Size of a depth file from its header alone (nothing is decoded), within the readers' limits
+/// ([`ic_render::io::MAX_IMAGE_SIDE`], [`ic_render::io::MAX_IMAGE_PIXELS`]).
 pub fn depth_size(path: &Path) -> Result<(u32, u32)> {
     if is_exr(path)? {
-        let d = ic_render::io::read_depth_exr(path, None)?;
-        return Ok((d.width, d.height));
+        return Ok(ic_render::io::exr_size(path)?);
     }
-    let file = std::fs::File::open(path).map_err(|e| bad(path, format!("cannot read: {e}")))?;
-    let reader = png::Decoder::new(std::io::BufReader::new(file))
-        .read_info()
-        .map_err(|e| bad(path, format!("not a readable PNG: {e}")))?;
-    let info = reader.info();
-    Ok((info.width, info.height))
+    Ok(ic_render::io::png_size(path)?)
 }
 
 /// Reads a depth map in millimetres: a 16-bit PNG (`stored × depth_scale = mm`) or an EXR in
@@ -228,21 +352,42 @@ pub fn read_depth_mm(path: &Path, camera: &CameraFile) -> Result<DepthImage> {
     } else {
         ic_render::io::read_depth_png(path, camera.depth_scale, expected)?
     };
-    let mut valid = 0usize;
-    let mut negative = 0usize;
+    let (mut valid, mut negative, mut beyond) = (0usize, 0usize, 0usize);
+    let mut farthest = 0.0f32;
     let data: Vec<f32> = metres
         .data
         .iter()
         .map(|&z| {
-            if z.is_finite() && z > 0.0 {
+            let mm = z * 1000.0;
+            if z.is_finite() && z > 0.0 && mm <= MAX_DEPTH_MM {
                 valid += 1;
-                z * 1000.0
+                mm
             } else {
                 negative += (z.is_finite() && z < 0.0) as usize;
+                if z.is_finite() && mm > MAX_DEPTH_MM {
+                    beyond += 1;
+                    farthest = farthest.max(z);
+                }
                 0.0
             }
         })
         .collect();
+    if valid == 0 && beyond > 0 {
+        return Err(bad(
+            path,
+            format!(
+                "the depth map has no usable pixel: {beyond} pixels hold depths beyond {} km (up to {farthest:e} m), \
+                 which no depth sensor measures, and the others are zero, negative, NaN or infinite; \
+                 {}",
+                MAX_DEPTH_MM / 1e6,
+                if is_exr(path)? {
+                    "EXR depth is read in metres"
+                } else {
+                    "is the camera's depth_scale right? (stored value × depth_scale = mm)"
+                }
+            ),
+        ));
+    }
     if valid == 0 {
         return Err(bad(
             path,
@@ -251,6 +396,15 @@ pub fn read_depth_mm(path: &Path, camera: &CameraFile) -> Result<DepthImage> {
     }
     if negative > 0 {
         tracing::warn!(file = %path.display(), negative, "negative depths are treated as missing");
+    }
+    if beyond > 0 {
+        tracing::warn!(
+            file = %path.display(),
+            beyond,
+            farthest_m = farthest,
+            "depths beyond {} km are treated as missing",
+            MAX_DEPTH_MM / 1e6
+        );
     }
     Ok(Image {
         width: metres.width,

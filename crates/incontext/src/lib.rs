@@ -29,10 +29,12 @@ mod error;
 pub mod eval;
 pub mod inputs;
 pub mod models;
+pub mod outputs;
 pub mod overlay;
 pub mod pipeline;
 pub mod register;
 pub mod render;
+pub mod verify;
 
 pub use error::{CliError, ErrorKind, Result, ResultExt};
 pub use pipeline::{Object, Pipeline, PipelineOptions, Registration, StageSeconds};

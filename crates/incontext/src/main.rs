@@ -1,6 +1,7 @@
 //! `incontext` — the command line (see `incontext --help`).
 //!
-//! Exit codes: 0 ok, 2 bad input (flags, files), 3 object not found, 1 internal error.
+//! Exit codes: 0 ok, 2 bad input (flags, files), 3 object not found, 4 pose uncertain (written,
+//! with verdict `uncertain`), 130 interrupted, 1 internal error.
 
 use std::io::Write;
 use std::process::ExitCode;
@@ -13,10 +14,14 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     // SAFETY: first thing in main, before any other thread exists.
     unsafe { ic_pose::tune_candle_cpu_pool() };
+    // More compute threads than logical CPUs only slow everything down (and thousands of
+    // threads take minutes to start): cap them, and say so below once logging is set up.
+    let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let capped = cli.threads.filter(|&t| t > cpus);
     if let Some(t) = cli.threads {
         // SAFETY: first thing in main, before any other thread exists; rayon and candle read
         // it when they start their pools.
-        unsafe { std::env::set_var("RAYON_NUM_THREADS", t.max(1).to_string()) };
+        unsafe { std::env::set_var("RAYON_NUM_THREADS", t.clamp(1, cpus).to_string()) };
     }
     let level = match (cli.quiet, cli.verbose) {
         (true, _) => "error",
@@ -33,6 +38,21 @@ fn main() -> ExitCode {
         .with_target(false)
         .without_time()
         .init();
+    if let Some(t) = capped {
+        tracing::warn!(
+            "--threads {t} is more than the {cpus} logical CPUs of this machine: using {cpus}"
+        );
+    }
+    // Ctrl-C, SIGTERM, SIGHUP: remove the temporary files of writes in flight and exit 130;
+    // outputs already written stay complete, none is left half-written.
+    let _ = ctrlc::set_handler(|| {
+        let _guard = ic_geometry::io::abandon_pending_writes();
+        let _ = writeln!(
+            std::io::stderr(),
+            "error: interrupted; no partial output was left behind"
+        );
+        std::process::exit(130);
+    });
     // A panic is a bug: report it as an internal error (exit 1), in JSON when asked.
     let json_mode = cli.json;
     std::panic::set_hook(Box::new(move |info| {
@@ -52,6 +72,16 @@ fn main() -> ExitCode {
                 out(&incontext::inputs::pretty_json(&report));
             } else {
                 out(text.trim_end());
+            }
+            // `register` found a pose but cannot vouch for it: written, flagged, exit 4.
+            if report["command"] == "register" && report["verdict"] == "uncertain" {
+                let _ = writeln!(
+                    std::io::stderr(),
+                    "warning: the pose is uncertain (confidence {:.2}): it may be a symmetric \
+                     flip, the wrong side or another object; check it with --overlay (exit code 4)",
+                    report["confidence"].as_f64().unwrap_or(f64::NAN)
+                );
+                return ExitCode::from(4);
             }
             ExitCode::SUCCESS
         }

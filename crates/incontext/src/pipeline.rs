@@ -38,6 +38,13 @@ pub const DENSE_MODEL_POINTS: usize = 4096;
 /// model counts as explained in the confidence.
 pub const MATCH_DISTANCE: f32 = ic_data::PAPER_MATCH_THRESHOLD;
 
+/// The confidence from which a pose's [`Verdict`] is `ok` (chosen on validation views: see
+/// `docs/decisions.md`).
+pub const CONFIDENCE_OK: f64 = 0.6;
+
+/// The confidence below which the object counts as not found ([`Verdict::NotFound`]).
+pub const CONFIDENCE_FOUND: f64 = 0.25;
+
 /// A known object, ready to be registered: its normalised mesh (when it came from one), how it
 /// was normalised, and its dense visible-surface points with normals (normalised units).
 pub struct Object {
@@ -151,6 +158,43 @@ fn pca_normals(points: &[Vec3]) -> Result<Vec<Vec3>> {
     Ok(estimate_normals(points, 10, centre + Vec3::splat(100.0))?)
 }
 
+/// How far a registration can be trusted, from its confidence (the fraction of the observed
+/// object voxels the aligned model explains) and the thresholds of [`PipelineOptions`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Verdict {
+    /// Confidence ≥ `confidence_ok`: the pose explains the object; use it.
+    Ok,
+    /// `confidence_found` ≤ confidence < `confidence_ok`: a pose was found but it may be wrong
+    /// (a symmetric flip, the wrong side, or another object); check it (`--overlay`) or try
+    /// more hypotheses.
+    Uncertain,
+    /// Confidence < `confidence_found`: the best pose explains almost nothing; the object is
+    /// not in view, or the mesh or its units are wrong.
+    NotFound,
+}
+
+impl Verdict {
+    /// The verdict of a confidence in [0, 1].
+    pub fn of(confidence: f64, options: &PipelineOptions) -> Verdict {
+        if confidence >= options.confidence_ok {
+            Verdict::Ok
+        } else if confidence >= options.confidence_found {
+            Verdict::Uncertain
+        } else {
+            Verdict::NotFound
+        }
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Verdict::Ok => "ok",
+            Verdict::Uncertain => "uncertain",
+            Verdict::NotFound => "not_found",
+        }
+    }
+}
+
 /// Settings of the pipeline (printed with every run).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct PipelineOptions {
@@ -169,6 +213,17 @@ pub struct PipelineOptions {
     /// and the refinement; the one whose pose explains the most observed points wins. 1 is
     /// the paper's one-shot pipeline.
     pub hypotheses: usize,
+    /// The [`Verdict`] thresholds on the confidence: `ok` from `confidence_ok`, `uncertain`
+    /// from `confidence_found`, `not_found` below (measured in `docs/decisions.md`).
+    pub confidence_ok: f64,
+    pub confidence_found: f64,
+    /// Rotation hypotheses (1, 12, 24 or 60; see [`crate::verify::rotation_set`]): the model
+    /// points are registered in that many rotated copies, batched through the network, and the
+    /// best are verified by render-and-compare. 1 = the paper's single orientation.
+    pub rotations: usize,
+    /// How many one-shot hypotheses (ranked by the point-distance confidence) are refined by
+    /// ICP and scored by render-and-compare when `rotations > 1`.
+    pub verify_top: usize,
 }
 
 impl Default for PipelineOptions {
@@ -181,6 +236,10 @@ impl Default for PipelineOptions {
             icp_max_points: 4096,
             min_object_points: 32,
             hypotheses: 1,
+            confidence_ok: CONFIDENCE_OK,
+            confidence_found: CONFIDENCE_FOUND,
+            rotations: 1,
+            verify_top: 4,
         }
     }
 }
@@ -194,6 +253,8 @@ pub struct StageSeconds {
     pub observed_points: f64,
     pub pose_network: f64,
     pub icp: f64,
+    /// Render-and-compare of the verified hypotheses.
+    pub verification: f64,
     /// Everything from the depth map (or points) in memory to the final pose.
     pub total: f64,
 }
@@ -229,6 +290,13 @@ pub struct Registration {
     /// Fraction of the observed object voxels within [`MATCH_DISTANCE`] (normalised) of the
     /// model at the final pose, in [0, 1].
     pub confidence: f64,
+    /// What the confidence says of the pose.
+    pub verdict: Verdict,
+    /// The render-and-compare score of the pose, when hypotheses were verified.
+    pub verification: Option<crate::verify::Score>,
+    /// One-shot hypotheses made, and how many were refined and verified.
+    pub hypotheses_made: usize,
+    pub hypotheses_verified: usize,
     pub segmentation: Option<SegmentationSummary>,
     /// Object points after erosion and crop, and after voxelising.
     pub object_points: usize,
@@ -444,7 +512,13 @@ impl Pipeline {
             )));
         }
         check_units(&voxels);
-        let mut r = self.register_observed(object, voxels, seed, seconds, clock)?;
+        let observation = if self.options.rotations > 1 {
+            crate::verify::Observation::from_depth(depth_n, intrinsics, &mask)
+        } else {
+            None
+        };
+        let mut r =
+            self.register_observed(object, voxels, observation.as_ref(), seed, seconds, clock)?;
         r.object_points = points.len();
         r.segmentation = Some(summary);
         r.mask = Some(mask);
@@ -469,9 +543,15 @@ impl Pipeline {
                 observed.len()
             )));
         }
+        let observation = if self.options.rotations > 1 {
+            crate::verify::Observation::from_points(observed, self.options.voxel_size)
+        } else {
+            None
+        };
         let mut r = self.register_observed(
             object,
             observed.to_vec(),
+            observation.as_ref(),
             seed,
             StageSeconds::default(),
             clock,
@@ -484,10 +564,14 @@ impl Pipeline {
         &self,
         object: &Object,
         voxels: Vec<Vec3>,
+        observation: Option<&crate::verify::Observation>,
         seed: u64,
         mut seconds: StageSeconds,
         clock: Instant,
     ) -> Result<Registration> {
+        if let (Some(obs), true) = (observation, self.options.rotations > 1) {
+            return self.register_verified(object, voxels, obs, seed, seconds, clock);
+        }
         let mut best: Option<Hypothesis> = None;
         for h in 0..self.options.hypotheses.max(1) {
             // Hypothesis 0 draws from `seed` itself, so one hypothesis is the paper's pipeline.
@@ -508,6 +592,10 @@ impl Pipeline {
             pose_normalised: best.pose,
             one_shot_normalised: best.one_shot,
             confidence: best.confidence,
+            verdict: Verdict::of(best.confidence, &self.options),
+            verification: None,
+            hypotheses_made: self.options.hypotheses.max(1),
+            hypotheses_verified: 0,
             segmentation: None,
             object_points: voxels.len(),
             object_voxels: voxels.len(),
@@ -518,6 +606,154 @@ impl Pipeline {
             observed: voxels,
             mask: None,
         })
+    }
+
+    /// Hypothesise and verify: for each draw of points (`hypotheses`) and each rotation of
+    /// the rotation set, a rotated copy of the model points goes through the network (one
+    /// batch per draw); the one-shot poses are ranked by the point-distance confidence, the
+    /// best `verify_top` are refined by ICP and scored by render-and-compare against
+    /// `observation`; the best score wins.
+    fn register_verified(
+        &self,
+        object: &Object,
+        voxels: Vec<Vec3>,
+        observation: &crate::verify::Observation,
+        seed: u64,
+        mut seconds: StageSeconds,
+        clock: Instant,
+    ) -> Result<Registration> {
+        use crate::verify::{ModelShape, rotate_points, rotation_set, unrotate};
+        let rotations = rotation_set(self.options.rotations).map_err(CliError::input)?;
+        let (m, n) = self.point_counts();
+        let mut candidates: Vec<(f64, Pose, ic_pose::PoseEstimate)> = Vec::new();
+        for h in 0..self.options.hypotheses.max(1) {
+            let hseed = if h == 0 {
+                seed
+            } else {
+                ic_data::mix_seed(seed, h as u64)
+            };
+            let t = Instant::now();
+            let mut rng = ChaCha8Rng::seed_from_u64(hseed);
+            let xi = random_subsample_indices(object.points.len(), m, &mut rng)?;
+            let yi = random_subsample_indices(voxels.len(), n, &mut rng)?;
+            let x: Vec<Vec3> = xi.iter().map(|&i| object.points[i]).collect();
+            let y: Vec<Vec3> = yi.iter().map(|&i| voxels[i]).collect();
+            let copies: Vec<Vec<Vec3>> = rotations.iter().map(|r| rotate_points(&x, r)).collect();
+            seconds.observed_points += t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let pairs: Vec<(&[Vec3], &[Vec3])> =
+                copies.iter().map(|c| (c.as_slice(), y.as_slice())).collect();
+            let estimates = self.pose.estimator.estimate_batch(&pairs)?;
+            seconds.pose_network += t.elapsed().as_secs_f64();
+            for (e, r) in estimates.into_iter().zip(&rotations) {
+                let pose = unrotate(&e.pose, r);
+                candidates.push((self.explained(object, &voxels, &pose), pose, e));
+            }
+        }
+        let made = candidates.len();
+        // The first draw's unrotated estimate (the paper's pipeline) is always verified; the
+        // others compete for the remaining places by the point-distance confidence.
+        let first = candidates.remove(0);
+        candidates.sort_by(|a, b| b.0.total_cmp(&a.0));
+        candidates.insert(0, first);
+        let shape = match &object.mesh {
+            Some(mesh) => ModelShape::Mesh(mesh.clone()),
+            None => ModelShape::points(object.points.clone(), 0.5 * self.options.voxel_size),
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(ic_data::mix_seed(seed, 0x5e1f));
+        let mut best: Option<(crate::verify::Score, Hypothesis)> = None;
+        for (_, one_shot, estimate) in candidates.iter().take(self.options.verify_top.max(1)) {
+            let (pose, icp) = self.refine(object, &voxels, one_shot, &mut rng, &mut seconds)?;
+            let t = Instant::now();
+            let score = observation.score(&shape, &pose);
+            seconds.verification += t.elapsed().as_secs_f64();
+            let hyp = Hypothesis {
+                pose,
+                one_shot: *one_shot,
+                confidence: self.explained(object, &voxels, &pose),
+                inlier_count: estimate.inlier_count,
+                assignment_confidence: estimate.assignment_confidence,
+                icp,
+            };
+            if best.as_ref().is_none_or(|(b, _)| score.score > b.score) {
+                best = Some((score, hyp));
+            }
+        }
+        let (score, best) = best.expect("at least one hypothesis");
+        seconds.total = clock.elapsed().as_secs_f64();
+        Ok(Registration {
+            pose: object.normalisation.pose_to_original(&best.pose),
+            pose_normalised: best.pose,
+            one_shot_normalised: best.one_shot,
+            confidence: score.score,
+            verdict: Verdict::of(score.score, &self.options),
+            verification: Some(score),
+            hypotheses_made: made,
+            hypotheses_verified: self.options.verify_top.max(1).min(made),
+            segmentation: None,
+            object_points: voxels.len(),
+            object_voxels: voxels.len(),
+            inlier_count: best.inlier_count,
+            assignment_confidence: best.assignment_confidence,
+            icp: best.icp,
+            seconds,
+            observed: voxels,
+            mask: None,
+        })
+    }
+
+    /// Fraction of `voxels` (camera frame) within [`MATCH_DISTANCE`] of the model's dense
+    /// points at `pose`: the point-distance confidence.
+    fn explained(&self, object: &Object, voxels: &[Vec3], pose: &Pose) -> f64 {
+        let back = pose.inverse();
+        let explained = voxels
+            .iter()
+            .filter(|&&p| object.tree.nearest(back.apply_f32(p)).distance <= MATCH_DISTANCE)
+            .count();
+        explained as f64 / voxels.len().max(1) as f64
+    }
+
+    /// The pipeline's refinement of a one-shot pose (ICP of at most `icp_max_points` object
+    /// voxels onto the dense model points, or nothing).
+    fn refine(
+        &self,
+        object: &Object,
+        voxels: &[Vec3],
+        one_shot: &Pose,
+        rng: &mut ChaCha8Rng,
+        seconds: &mut StageSeconds,
+    ) -> Result<(Pose, Option<IcpSummary>)> {
+        match self.options.refine {
+            Refine::None => Ok((*one_shot, None)),
+            Refine::Icp => {
+                let t = Instant::now();
+                let source: Vec<Vec3> = if voxels.len() > self.options.icp_max_points {
+                    random_subsample_indices(voxels.len(), self.options.icp_max_points, rng)?
+                        .into_iter()
+                        .map(|i| voxels[i])
+                        .collect()
+                } else {
+                    voxels.to_vec()
+                };
+                let target = IcpTarget::new(&object.points, Some(&object.normals))?;
+                let options = IcpOptions {
+                    method: IcpMethod::PointToPlane,
+                    max_correspondence_distance: self.options.icp_max_distance,
+                    max_iterations: self.options.icp_iterations,
+                    ..IcpOptions::default()
+                };
+                let result = target.register(&source, &one_shot.inverse(), &options)?;
+                seconds.icp += t.elapsed().as_secs_f64();
+                Ok((
+                    result.pose.inverse().orthonormalised(),
+                    Some(IcpSummary {
+                        fitness: result.fitness,
+                        inlier_rmse: result.inlier_rmse,
+                        iterations: result.iterations,
+                    }),
+                ))
+            }
+        }
     }
 
     /// One draw of M model and N observed points, the network, ICP, and the confidence.
@@ -542,46 +778,11 @@ impl Pipeline {
         seconds.pose_network += t.elapsed().as_secs_f64();
         let one_shot = estimate.pose;
 
-        let (pose, icp) = match self.options.refine {
-            Refine::None => (one_shot, None),
-            Refine::Icp => {
-                let t = Instant::now();
-                let source: Vec<Vec3> = if voxels.len() > self.options.icp_max_points {
-                    random_subsample_indices(voxels.len(), self.options.icp_max_points, &mut rng)?
-                        .into_iter()
-                        .map(|i| voxels[i])
-                        .collect()
-                } else {
-                    voxels.to_vec()
-                };
-                let target = IcpTarget::new(&object.points, Some(&object.normals))?;
-                let options = IcpOptions {
-                    method: IcpMethod::PointToPlane,
-                    max_correspondence_distance: self.options.icp_max_distance,
-                    max_iterations: self.options.icp_iterations,
-                    ..IcpOptions::default()
-                };
-                let result = target.register(&source, &one_shot.inverse(), &options)?;
-                seconds.icp += t.elapsed().as_secs_f64();
-                (
-                    result.pose.inverse().orthonormalised(),
-                    Some(IcpSummary {
-                        fitness: result.fitness,
-                        inlier_rmse: result.inlier_rmse,
-                        iterations: result.iterations,
-                    }),
-                )
-            }
-        };
-        let back = pose.inverse();
-        let explained = voxels
-            .iter()
-            .filter(|&&p| object.tree.nearest(back.apply_f32(p)).distance <= MATCH_DISTANCE)
-            .count();
+        let (pose, icp) = self.refine(object, voxels, &one_shot, &mut rng, seconds)?;
         Ok(Hypothesis {
             pose,
             one_shot,
-            confidence: explained as f64 / voxels.len().max(1) as f64,
+            confidence: self.explained(object, voxels, &pose),
             inlier_count: estimate.inlier_count,
             assignment_confidence: estimate.assignment_confidence,
             icp,

@@ -9,8 +9,21 @@ use serde_json::{Value, json};
 
 use crate::error::Result;
 use crate::inputs;
+use crate::outputs::{self, Named};
 use crate::overlay;
-use crate::pipeline::{Object, Pipeline, PipelineOptions, Registration};
+use crate::pipeline::{Object, Pipeline, PipelineOptions, Registration, Verdict};
+
+/// The error of a registration whose verdict is `not_found` (exit code 3).
+pub fn not_found_error(r: &Registration, options: &PipelineOptions) -> crate::CliError {
+    crate::CliError::not_found(format!(
+        "object not found: the best pose explains {:.0} % of the object's points \
+         (confidence {:.2}, below {:.2}); is this the right mesh, in the depth map's units \
+         (--model-unit-mm), and is the object in view?",
+        100.0 * r.confidence,
+        r.confidence,
+        options.confidence_found
+    ))
+}
 
 /// Flags of `incontext register`.
 #[derive(clap::Args, Debug, Clone, serde::Serialize)]
@@ -66,6 +79,18 @@ pub struct NetworkArgs {
     /// explains the most object points wins). 1 = the paper's one-shot pipeline.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub hypotheses: u32,
+    /// Rotation hypotheses: 1 (the paper's single orientation), or 12, 24, 60 rotated copies of
+    /// the model (rotation groups covering SO(3) evenly), batched through the network; the best
+    /// are refined by ICP and verified by rendering the model against the depth map.
+    #[arg(long, default_value_t = 1, value_parser = parse_rotations)]
+    pub rotations: usize,
+}
+
+pub fn parse_rotations(s: &str) -> std::result::Result<usize, String> {
+    let n: usize = s
+        .parse()
+        .map_err(|_| format!("{s:?} is not a number of rotations"))?;
+    crate::verify::rotation_set(n).map(|_| n)
 }
 
 fn ser_head<S: serde::Serializer>(h: &Option<Head>, s: S) -> std::result::Result<S::Ok, S::Error> {
@@ -99,6 +124,7 @@ impl NetworkArgs {
         let options = PipelineOptions {
             refine: self.refine,
             hypotheses: self.hypotheses as usize,
+            rotations: self.rotations,
             ..PipelineOptions::default()
         };
         Pipeline::load(
@@ -145,6 +171,32 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
             args.model_unit_mm
         )));
     }
+    // Outputs before any work: none may replace a device, a link, an input or another output.
+    let mut ins = vec![
+        Named::new("--model", &args.model),
+        Named::new("--depth", &args.depth),
+        Named::new("--camera", &args.camera),
+    ];
+    let optional_ins = [
+        ("--mask", &args.mask),
+        ("--pose-model", &args.networks.pose_model),
+        ("--seg-model", &args.networks.seg_model),
+    ];
+    for (what, p) in &optional_ins {
+        if let Some(p) = p {
+            ins.push(Named::new(what, p));
+        }
+    }
+    let outs: Vec<Named> = [
+        ("--out", &args.out),
+        ("--overlay", &args.overlay),
+        ("--ply", &args.ply),
+    ]
+    .iter()
+    .filter_map(|(what, p)| p.as_deref().map(|p| Named::new(what, p)))
+    .collect();
+    outputs::check_outputs(&ins, &outs)?;
+
     // Inputs: the camera first (the depth map's size is checked against it).
     let camera = inputs::read_camera(&args.camera, || inputs::depth_size(&args.depth))?;
     let k = camera.intrinsics;
@@ -178,36 +230,47 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
 
     let object = Object::from_mesh(mesh, seed).map_err(|e| e.context(args.model.display()))?;
     let registration = pipeline.register_depth(&object, &depth, &k, mask.as_ref(), seed)?;
+    if registration.verdict == Verdict::NotFound {
+        return Err(not_found_error(&registration, &pipeline.options));
+    }
 
+    // Every output is computed first, then written: pose.json, the overlay, the PLY.
     let t = Instant::now();
     let mut outputs = serde_json::Map::new();
-    if let Some(path) = &args.overlay {
-        let mesh = object
-            .mesh
-            .as_ref()
-            .ok_or_else(|| crate::CliError::internal("the object has no mesh"))?;
-        overlay::write_overlay(
-            path,
-            &depth,
-            &k,
-            mesh,
-            &registration.pose_normalised,
-            registration.mask.as_ref(),
-        )?;
-        outputs.insert("overlay".into(), json!(path));
+    if let Some(path) = &args.out {
+        outputs.insert("pose".into(), json!(path));
     }
-    if let Some(path) = &args.ply {
-        let scale = object.normalisation.scale as f32;
-        let voxel = pipeline.options.voxel_size * scale;
-        let scene = overlay::scene_points(&depth, &k, voxel)?;
-        let aligned: Vec<_> = object
-            .points
-            .iter()
-            .map(|p| registration.pose_normalised.apply_f32(*p) * scale)
-            .collect();
-        overlay::write_two_colour_ply(path, &scene, &aligned)?;
-        outputs.insert("ply".into(), json!(path));
-    }
+    let overlay_rgb = match &args.overlay {
+        Some(path) => {
+            let mesh = object
+                .mesh
+                .as_ref()
+                .ok_or_else(|| crate::CliError::internal("the object has no mesh"))?;
+            let model = overlay::render_mask(mesh, &registration.pose_normalised, &k)?;
+            outputs.insert("overlay".into(), json!(path));
+            Some(overlay::overlay_rgb(
+                &depth,
+                &model,
+                registration.mask.as_ref(),
+            ))
+        }
+        None => None,
+    };
+    let ply_points = match &args.ply {
+        Some(path) => {
+            let scale = object.normalisation.scale as f32;
+            let voxel = pipeline.options.voxel_size * scale;
+            let scene = overlay::scene_points(&depth, &k, voxel)?;
+            let aligned: Vec<_> = object
+                .points
+                .iter()
+                .map(|p| registration.pose_normalised.apply_f32(*p) * scale)
+                .collect();
+            outputs.insert("ply".into(), json!(path));
+            Some((scene, aligned))
+        }
+        None => None,
+    };
     let outputs_seconds = t.elapsed().as_secs_f64();
 
     let s = &registration.seconds;
@@ -221,6 +284,7 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
         "pose_bop": bop_pose_json(&registration.pose, args.model_unit_mm),
         "pose_normalised": pose_json(&registration.pose_normalised),
         "confidence": registration.confidence,
+        "verdict": registration.verdict,
         "details": {
             "segmentation": registration.segmentation,
             "object_points": registration.object_points,
@@ -228,6 +292,9 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
             "inlier_count": registration.inlier_count,
             "assignment_confidence": registration.assignment_confidence,
             "icp": registration.icp,
+            "verification": registration.verification,
+            "hypotheses_made": registration.hypotheses_made,
+            "hypotheses_verified": registration.hypotheses_verified,
             "one_shot_normalised": pose_json(&registration.one_shot_normalised),
             "normalisation": object.normalisation,
         },
@@ -240,16 +307,21 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
             "observed_points": ms(s.observed_points),
             "pose_network": ms(s.pose_network),
             "icp": ms(s.icp),
+            "verification": ms(s.verification),
             "registration": ms(s.total),
             "outputs": ms(outputs_seconds),
             "total": ms(clock.elapsed().as_secs_f64()),
         },
         "outputs": outputs,
     });
-    let mut report = report;
     if let Some(path) = &args.out {
-        report["outputs"]["pose"] = json!(path);
         inputs::write_json(path, &report)?;
+    }
+    if let (Some(path), Some(rgb)) = (&args.overlay, &overlay_rgb) {
+        overlay::write_rgb_png(path, depth.width, depth.height, rgb)?;
+    }
+    if let (Some(path), Some((scene, aligned))) = (&args.ply, &ply_points) {
+        overlay::write_two_colour_ply(path, scene, aligned)?;
     }
     Ok(RegisterOutcome {
         registration,
@@ -289,7 +361,8 @@ pub fn summary_text(report: &Value) -> String {
     ));
     let d = &report["details"];
     s.push_str(&format!(
-        "confidence {:.3} ({} object voxels; segmentation: {}{}; ICP fitness {})\n",
+        "verdict {}: confidence {:.3} ({} object voxels; segmentation: {}{}; ICP fitness {})\n",
+        report["verdict"].as_str().unwrap_or("?"),
         report["confidence"].as_f64().unwrap_or(f64::NAN),
         d["object_voxels"],
         d["segmentation"]["source"].as_str().unwrap_or("?"),

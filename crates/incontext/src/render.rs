@@ -39,6 +39,28 @@ pub fn run(args: &RenderArgs) -> Result<Value> {
             args.model_unit_mm
         )));
     }
+    let png = args.out.join("depth.png");
+    let exr = args.out.join("depth.exr");
+    let mask_path = args.out.join("mask.png");
+    let cam_path = args.out.join("camera.json");
+    {
+        use crate::outputs::{Named, check_outputs};
+        check_outputs(
+            &[
+                Named::new("--model", &args.model),
+                Named::new("--camera", &args.camera),
+                Named::new("--pose", &args.pose),
+            ],
+            &[
+                Named::new("the rendered depth.png", &png),
+                Named::new("the rendered depth.exr", &exr),
+                Named::new("the rendered mask.png", &mask_path),
+                Named::new("the rendered camera.json", &cam_path),
+            ],
+        )?;
+    }
+    // The camera's size is bounded by read_camera (ic_render::io::MAX_IMAGE_PIXELS), so the
+    // render below allocates at most that many pixels.
     let camera = inputs::read_camera(&args.camera, || {
         Err(CliError::input(format!(
             "{}: width and height are needed to render",
@@ -71,10 +93,6 @@ pub fn run(args: &RenderArgs) -> Result<Value> {
             .collect(),
     };
     inputs::create_dir(&args.out)?;
-    let png = args.out.join("depth.png");
-    let exr = args.out.join("depth.exr");
-    let mask_path = args.out.join("mask.png");
-    let cam_path = args.out.join("camera.json");
     ic_render::io::write_depth_png(&png, &metres, camera.depth_scale)?;
     ic_render::io::write_depth_exr(&exr, &metres)?;
     ic_render::io::write_mask_png(&mask_path, &mask)?;

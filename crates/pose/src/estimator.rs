@@ -98,6 +98,30 @@ impl PoseEstimator {
         })
     }
 
+    /// One estimate per pair, all pairs through the network as one batch (every pair must
+    /// have the same model and observed point counts). Each pose maps its pair's model points
+    /// (model frame, normalised units) onto its observed points (camera frame).
+    ///
+    /// Errors: an empty batch, differing point counts, fewer points than the network's k (or
+    /// 3), non-finite coordinates.
+    pub fn estimate_batch(&self, pairs: &[(&[Vec3], &[Vec3])]) -> Result<Vec<PoseEstimate>> {
+        let batch = PairBatch::new(pairs, self.config.net.k, &self.device)?;
+        let out = self.net.forward_t(&batch, false)?;
+        let matches = out.matches()?;
+        pairs
+            .iter()
+            .zip(&matches)
+            .map(|((x, y), m)| {
+                let r = recover_pose(x, y, m, &self.recovery)?;
+                Ok(PoseEstimate {
+                    pose: r.pose,
+                    inlier_count: r.inlier_count,
+                    assignment_confidence: r.assignment_confidence,
+                })
+            })
+            .collect()
+    }
+
     /// The pose mapping `model_points` (model frame) onto `observed_points` (camera frame).
     ///
     /// Errors: fewer points than the network's k (or 3), non-finite coordinates.

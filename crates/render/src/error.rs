@@ -92,6 +92,19 @@ pub enum ImageIoError {
     /// A parameter (e.g. the depth scale) is invalid.
     #[error("{path}: invalid parameter: {message}")]
     InvalidParameter { path: PathBuf, message: String },
+    /// The header declares an image larger than [`crate::io::MAX_IMAGE_SIDE`] per side or
+    /// [`crate::io::MAX_IMAGE_PIXELS`] in all; refused before any pixel is decoded.
+    #[error(
+        "{path}: the image declares {width}×{height} pixels, more than the largest supported \
+         ({} per side, {} pixels in all); is the file damaged?",
+        crate::io::MAX_IMAGE_SIDE,
+        crate::io::MAX_IMAGE_PIXELS
+    )]
+    TooLarge {
+        path: PathBuf,
+        width: u64,
+        height: u64,
+    },
 }
 
 impl ImageIoError {
@@ -103,7 +116,8 @@ impl ImageIoError {
             | ImageIoError::Format { path, .. }
             | ImageIoError::SizeMismatch { path, .. }
             | ImageIoError::ValueOutOfRange { path, .. }
-            | ImageIoError::InvalidParameter { path, .. } => path,
+            | ImageIoError::InvalidParameter { path, .. }
+            | ImageIoError::TooLarge { path, .. } => path,
         }
     }
 }

@@ -17,6 +17,74 @@ use ic_geometry::{DepthImage, Image, InstanceImage, Mask};
 
 use crate::ImageIoError;
 
+/// The largest image side read or rendered, in pixels (16384: above every depth sensor and
+/// 8K frame).
+pub const MAX_IMAGE_SIDE: u32 = 16_384;
+
+/// The most pixels of one image read or rendered (2²⁵ ≈ 33.5 M: an 8K UHD frame, 7680×4320,
+/// fits). A decoded depth map then stays below ≈ 0.5 GB through the pipeline.
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 25;
+
+/// The largest image file read (1 GiB; an uncompressed 16-bit PNG at the largest size is
+/// 64 MiB, a float EXR 128 MiB).
+pub const MAX_IMAGE_FILE_BYTES: u64 = 1 << 30;
+
+/// Fails with [`ImageIoError::TooLarge`] when `width × height` exceeds [`MAX_IMAGE_SIDE`] or
+/// [`MAX_IMAGE_PIXELS`] (checked on headers, before any pixel is decoded, and on cameras
+/// before anything is rendered).
+pub fn check_image_size(path: &Path, width: u64, height: u64) -> Result<(), ImageIoError> {
+    if width > MAX_IMAGE_SIDE as u64
+        || height > MAX_IMAGE_SIDE as u64
+        || width.saturating_mul(height) > MAX_IMAGE_PIXELS
+    {
+        return Err(ImageIoError::TooLarge {
+            path: path.to_path_buf(),
+            width,
+            height,
+        });
+    }
+    Ok(())
+}
+
+/// Opens an image for reading: a regular file of at most [`MAX_IMAGE_FILE_BYTES`] (device
+/// nodes, FIFOs and folders are refused, even behind a symbolic link).
+fn open_image(path: &Path) -> Result<BufReader<std::io::Take<File>>, ImageIoError> {
+    ic_geometry::io::open_regular(path, MAX_IMAGE_FILE_BYTES)
+        .map(BufReader::new)
+        .map_err(io_err(path))
+}
+
+/// The size of a PNG from its header alone (nothing is decoded); fails when it exceeds the
+/// limits of [`check_image_size`].
+pub fn png_size(path: impl AsRef<Path>) -> Result<(u32, u32), ImageIoError> {
+    let path = path.as_ref();
+    let reader = png::Decoder::new(open_image(path)?)
+        .read_info()
+        .map_err(|e| codec(path, e))?;
+    let info = reader.info();
+    check_image_size(path, info.width as u64, info.height as u64)?;
+    Ok((info.width, info.height))
+}
+
+/// The size of an OpenEXR image's first valid layer from its header alone; fails when it
+/// exceeds the limits of [`check_image_size`].
+pub fn exr_size(path: impl AsRef<Path>) -> Result<(u32, u32), ImageIoError> {
+    let path = path.as_ref();
+    let meta = exr::meta::MetaData::read_from_buffered(open_image(path)?, false)
+        .map_err(|e| codec(path, e))?;
+    let first = meta
+        .headers
+        .first()
+        .ok_or_else(|| codec(path, "the file has no image layer"))?;
+    // Every layer is bounded, not only the first: the reader looks at all of them.
+    for header in &meta.headers {
+        let size = header.layer_size;
+        check_image_size(path, size.width() as u64, size.height() as u64)?;
+    }
+    let size = first.layer_size;
+    Ok((size.width() as u32, size.height() as u32))
+}
+
 fn io_err(path: &Path) -> impl Fn(std::io::Error) -> ImageIoError + '_ {
     move |source| ImageIoError::Io {
         path: path.to_path_buf(),
@@ -63,8 +131,7 @@ fn read_png_gray(
     bits: png::BitDepth,
     expected: Option<(u32, u32)>,
 ) -> Result<(u32, u32, Vec<u8>), ImageIoError> {
-    let file = File::open(path).map_err(io_err(path))?;
-    let mut dec = png::Decoder::new(BufReader::new(file));
+    let mut dec = png::Decoder::new(open_image(path)?);
     dec.set_transformations(png::Transformations::IDENTITY);
     let mut reader = dec.read_info().map_err(|e| codec(path, e))?;
     let (width, height, color, depth) = {
@@ -83,6 +150,7 @@ fn read_png_gray(
         });
     }
     check_size(path, width, height, expected)?;
+    check_image_size(path, width as u64, height as u64)?;
     let size = reader
         .output_buffer_size()
         .ok_or_else(|| codec(path, "image too large"))?;
@@ -273,14 +341,16 @@ pub fn read_depth_exr(
 ) -> Result<DepthImage, ImageIoError> {
     use exr::prelude::*;
     let path = path.as_ref();
-    let file = File::open(path).map_err(io_err(path))?;
+    // The header first: its size is checked before the decoder allocates any pixel.
+    let (w, h) = exr_size(path)?;
+    check_size(path, w, h, expected)?;
     let image = read()
         .no_deep_data()
         .largest_resolution_level()
         .all_channels()
         .first_valid_layer()
         .all_attributes()
-        .from_buffered(BufReader::new(file))
+        .from_buffered(open_image(path)?)
         .map_err(|e| codec(path, e))?;
     let layer = &image.layer_data;
     let names: Vec<String> = layer

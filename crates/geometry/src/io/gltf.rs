@@ -1,9 +1,12 @@
 //! glTF 2.0 (`.gltf` with embedded or external buffers, and binary `.glb`).
 //!
-//! The document and buffers are loaded with the `gltf` crate; accessors are decoded here with
-//! checked arithmetic, so that a malformed file gives an error rather than a panic.
+//! The document is parsed with the `gltf` crate. Buffers are loaded here ([`load_buffers`]):
+//! external buffer files must lie inside the model's folder and are read with a size bound, so
+//! that a hostile URI can neither escape the folder nor make us read a device such as
+//! `/dev/zero`. Accessors are decoded with checked arithmetic, so that a malformed file gives an
+//! error rather than a panic.
 
-use std::path::Path;
+use std::path::{Component, Path, PathBuf};
 
 use ::gltf::accessor::{DataType, Dimensions};
 use ::gltf::mesh::{Mode, Semantic};
@@ -14,7 +17,9 @@ use crate::{Mesh, MeshError};
 
 /// Reads a glTF or GLB mesh from `bytes`; `path` is only used in error messages and
 /// `base_dir` resolves external buffer files (`None`: only embedded `data:` URIs and the GLB
-/// binary chunk are allowed). Images are not loaded.
+/// binary chunk are allowed). External buffers must be relative URIs (percent-encoded) of regular
+/// files inside `base_dir`, symbolic links resolved; absolute paths, `file:`/`http:` URIs and
+/// `..` leading out of `base_dir` are refused. Images are not loaded.
 ///
 /// Every primitive of every mesh reachable from the default scene (or the first scene; or, with
 /// no scenes at all, every mesh untransformed) is merged, with its node's world transform
@@ -24,9 +29,9 @@ use crate::{Mesh, MeshError};
 /// (negative determinant) triangle order is swapped so faces stay counter-clockwise.
 ///
 /// # Errors
-/// [`MeshError::Format`] naming the mesh/primitive for invalid JSON/GLB containers, missing or
-/// out-of-bounds buffers, unsupported modes, accessor types and sparse accessors, index counts
-/// not a multiple of three, out-of-range indices, non-finite transformed vertices and node
+/// [`MeshError::Format`] naming the mesh/primitive for invalid JSON/GLB containers, buffers that
+/// cannot be loaded or are refused (named `buffer <index>`), out-of-bounds buffer views,
+/// unsupported modes, accessor types and sparse accessors, index counts not a multiple of three, out-of-range indices, non-finite transformed vertices and node
 /// graphs that are not trees; [`MeshError::Data`] when there are no triangles.
 pub fn read_gltf(bytes: &[u8], base_dir: Option<&Path>, path: &Path) -> Result<Mesh, MeshError> {
     let fail = |m: String| format_error(path, m);
@@ -35,9 +40,8 @@ pub fn read_gltf(bytes: &[u8], base_dir: Option<&Path>, path: &Path) -> Result<M
         .map_err(|e| fail(format!("invalid glTF: {e}")))?;
     let ::gltf::Gltf { document, blob } = gltf;
     validate(document.as_json()).map_err(fail)?;
-    let buffers = ::gltf::import_buffers(&document, base_dir, blob)
-        .map_err(|e| fail(format!("cannot load buffers: {e}")))?;
-    let buffers: Vec<&[u8]> = buffers.iter().map(|b| &b.0[..]).collect();
+    let buffers = load_buffers(&document, base_dir, blob).map_err(fail)?;
+    let buffers: Vec<&[u8]> = buffers.iter().map(|b| &b[..]).collect();
 
     let mut out = Mesh::default();
     let scene = document
@@ -81,6 +85,190 @@ pub fn read_gltf(bytes: &[u8], base_dir: Option<&Path>, path: &Path) -> Result<M
     }
     out.validate().map_err(|e| data_error(path, e))?;
     Ok(out)
+}
+
+/// The bytes of every buffer of `document`, in order, replacing `gltf::import_buffers` (which
+/// follows any path, absolute or `../`, and reads it unbounded: `"uri": "../../dev/zero"` never
+/// returned). Sources:
+///
+/// - the GLB binary chunk `blob`, for a buffer without URI (only one buffer can use it);
+/// - a `data:` URI with base64 payload (`data:application/octet-stream;base64,…`,
+///   `data:application/gltf-buffer;base64,…`; any media type is accepted);
+/// - a relative URI reference, percent-decoded (`my%20mesh.bin` is `my mesh.bin`), resolved
+///   against `base_dir` ([`resolve_buffer_file`]) and read with
+///   [`read_bounded`](super::read_bounded): regular files only, and at most
+///   [`MAX_MESH_FILE_BYTES`](super::MAX_MESH_FILE_BYTES) for all external buffers together (a
+///   model cannot make us hold more by naming the same large file many times).
+///
+/// Each buffer must hold at least its declared `byteLength` bytes (more is allowed: padding).
+///
+/// # Errors
+/// A message starting with `buffer <index>:` when the GLB chunk is missing, a data URI is not
+/// base64, a URI has a scheme other than `data:` (`http:`, `file:`, a drive letter …), is
+/// absolute, is not UTF-8 once percent-decoded, points outside `base_dir` (also through
+/// symbolic links) or is external while `base_dir` is `None`; when the file cannot be read or
+/// is not a regular file; and when the data is shorter than `byteLength`.
+fn load_buffers(
+    document: &::gltf::Document,
+    base_dir: Option<&Path>,
+    mut blob: Option<Vec<u8>>,
+) -> Result<Vec<Vec<u8>>, String> {
+    use ::gltf::buffer::Source;
+    let mut buffers = Vec::new();
+    let mut budget = super::MAX_MESH_FILE_BYTES;
+    for buffer in document.buffers() {
+        let i = buffer.index();
+        let data = match buffer.source() {
+            Source::Bin => blob.take().ok_or_else(|| {
+                format!("buffer {i}: refers to the GLB binary chunk, but there is none")
+            })?,
+            Source::Uri(uri) => match uri.strip_prefix("data:") {
+                Some(data) => decode_data_uri(data).map_err(|e| format!("buffer {i}: {e}"))?,
+                None => {
+                    let base_dir = base_dir.ok_or_else(|| {
+                        format!(
+                            "buffer {i}: the external URI \"{}\" cannot be resolved: the \
+                             model's folder is unknown",
+                            shown(uri)
+                        )
+                    })?;
+                    let file = resolve_buffer_file(base_dir, uri)
+                        .map_err(|e| format!("buffer {i}: {e}"))?;
+                    let data = super::read_bounded(&file, budget).map_err(|e| {
+                        let why = if e.kind() == std::io::ErrorKind::FileTooLarge {
+                            format!(
+                                "{e}; all external buffers together may hold at most {} bytes",
+                                super::MAX_MESH_FILE_BYTES
+                            )
+                        } else {
+                            e.to_string()
+                        };
+                        format!("buffer {i}: cannot read \"{}\": {why}", file.display())
+                    })?;
+                    budget -= data.len() as u64;
+                    data
+                }
+            },
+        };
+        if data.len() < buffer.length() {
+            return Err(format!(
+                "buffer {i}: {} bytes of data, but its byteLength is {}",
+                data.len(),
+                buffer.length()
+            ));
+        }
+        buffers.push(data);
+    }
+    Ok(buffers)
+}
+
+/// Decodes the part of a `data:` URI after `data:`: `[<media type>][;<parameters>];base64,<data>`.
+fn decode_data_uri(rest: &str) -> Result<Vec<u8>, String> {
+    let (header, payload) = rest
+        .split_once(',')
+        .ok_or("the data URI has no ',' before its data")?;
+    if !header.ends_with(";base64") {
+        return Err(format!(
+            "the data URI (\"data:{},…\") is not base64-encoded",
+            shown(header)
+        ));
+    }
+    base64::decode(payload).map_err(|e| format!("the data URI is not valid base64: {e}"))
+}
+
+/// The file an external buffer URI (a relative URI reference, not `data:`) names: the URI is
+/// percent-decoded and joined to `base_dir` (the model's folder; `""` is the working
+/// directory), and the result, canonicalised (symbolic links and `..` resolved), must lie inside
+/// the canonicalised `base_dir`. URIs with a scheme (`file:`, `http:`, `C:` …) and absolute
+/// paths are refused.
+fn resolve_buffer_file(base_dir: &Path, uri: &str) -> Result<PathBuf, String> {
+    let quoted = shown(uri);
+    // RFC 3986: a scheme is the part before a ':' in the first segment.
+    let first_segment = uri.split(['/', '?', '#']).next().unwrap_or("");
+    if first_segment.contains(':') {
+        return Err(format!(
+            "the URI \"{quoted}\" has a scheme; only relative paths and data: URIs are read"
+        ));
+    }
+    let relative = String::from_utf8(percent_decode(uri))
+        .map_err(|_| format!("the URI \"{quoted}\" is not UTF-8 once percent-decoded"))?;
+    let relative = Path::new(&relative);
+    if relative.is_absolute() || relative.has_root() {
+        return Err(format!(
+            "the URI \"{quoted}\" is an absolute path; only paths relative to the model's folder \
+             are read"
+        ));
+    }
+    // `..` climbing above the folder is refused before touching the file system; symbolic
+    // links are caught below, on the canonical path.
+    let mut depth = 0usize;
+    for c in relative.components() {
+        match c {
+            Component::ParentDir => {
+                depth = depth.checked_sub(1).ok_or_else(|| outside(&quoted))?;
+            }
+            Component::Normal(_) => depth += 1,
+            _ => {}
+        }
+    }
+    let base_dir = if base_dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        base_dir
+    };
+    let folder = base_dir.canonicalize().map_err(|e| {
+        format!(
+            "cannot resolve the model's folder \"{}\": {e}",
+            base_dir.display()
+        )
+    })?;
+    let joined = base_dir.join(relative);
+    let file = joined.canonicalize().map_err(|e| {
+        format!(
+            "cannot open the URI \"{quoted}\" (\"{}\"): {e}",
+            shown(&joined.to_string_lossy())
+        )
+    })?;
+    if !file.starts_with(&folder) {
+        return Err(outside(&quoted));
+    }
+    Ok(file)
+}
+
+fn outside(uri: &str) -> String {
+    format!("the URI \"{uri}\" points outside the model's folder")
+}
+
+/// `uri` for an error message: at most 200 characters (a hostile one can be megabytes long).
+fn shown(uri: &str) -> std::borrow::Cow<'_, str> {
+    match uri.char_indices().nth(200) {
+        Some((end, _)) => format!("{}…", &uri[..end]).into(),
+        None => uri.into(),
+    }
+}
+
+/// Percent-decodes a URI: `%XY` (two hex digits) becomes the byte `0xXY`; a `%` not followed by
+/// two hex digits is kept as it is.
+fn percent_decode(uri: &str) -> Vec<u8> {
+    let bytes = uri.as_bytes();
+    let hex = |b: u8| (b as char).to_digit(16).map(|d| d as u8);
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        if bytes[i] == b'%' {
+            if let (Some(h), Some(l)) = (
+                bytes.get(i + 1).copied().and_then(hex),
+                bytes.get(i + 2).copied().and_then(hex),
+            ) {
+                out.push(h << 4 | l);
+                i += 3;
+                continue;
+            }
+        }
+        out.push(bytes[i]);
+        i += 1;
+    }
+    out
 }
 
 /// gltf 1.4 computes `declared_length - 12` for a GLB without checking it (an overflow panic
@@ -300,4 +488,51 @@ fn append_mesh(
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn long_uris_are_shortened_in_messages() {
+        let uri = format!("{}/x.bin", "a/".repeat(1_000_000));
+        let e = resolve_buffer_file(Path::new(""), &uri).unwrap_err();
+        assert!(e.len() < 500, "{} characters", e.len());
+        assert_eq!(shown("é.bin"), "é.bin");
+    }
+
+    #[test]
+    fn percent_decoding_keeps_stray_percent_signs() {
+        assert_eq!(percent_decode("my%20mesh.bin"), b"my mesh.bin");
+        assert_eq!(percent_decode("%41%6a%2F"), b"Aj/");
+        assert_eq!(percent_decode("100%.bin%2"), b"100%.bin%2");
+        assert_eq!(percent_decode("%zz%FF"), b"%zz\xff");
+    }
+
+    #[test]
+    fn buffer_files_resolve_against_the_working_directory_for_an_empty_folder() {
+        // `load_mesh("scene.gltf")` passes `Path::new("")` (the parent of a bare file name);
+        // tests run in the crate's folder, which holds Cargo.toml.
+        let file = resolve_buffer_file(Path::new(""), "Cargo.toml").unwrap();
+        assert_eq!(file, Path::new("Cargo.toml").canonicalize().unwrap());
+        let e = resolve_buffer_file(Path::new(""), "../../Cargo.toml").unwrap_err();
+        assert!(e.contains("outside the model's folder"), "{e}");
+        let e =
+            resolve_buffer_file(Path::new(""), "src/%2E%2E/%2E%2E/%2E%2E/Cargo.toml").unwrap_err();
+        assert!(e.contains("outside the model's folder"), "{e}");
+        for uri in [
+            "file:///etc/hostname",
+            "http://example.com/a.bin",
+            "C:/a.bin",
+            "C:a.bin",
+        ] {
+            let e = resolve_buffer_file(Path::new(""), uri).unwrap_err();
+            assert!(e.contains("has a scheme"), "{uri}: {e}");
+        }
+        for uri in ["/etc/hostname", "%2Fetc/hostname"] {
+            let e = resolve_buffer_file(Path::new(""), uri).unwrap_err();
+            assert!(e.contains("absolute path"), "{uri}: {e}");
+        }
+    }
 }

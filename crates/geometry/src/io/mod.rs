@@ -70,7 +70,7 @@ pub fn load_mesh(path: impl AsRef<Path>) -> Result<Mesh, MeshError> {
         "off" => read_off(open(path)?, path),
         "ply" => read_ply(open(path)?, path),
         "gltf" | "glb" => {
-            let bytes = std::fs::read(path).map_err(|e| io_error(path, e))?;
+            let bytes = read_bounded(path, MAX_MESH_FILE_BYTES).map_err(|e| io_error(path, e))?;
             read_gltf(&bytes, path.parent(), path)
         }
         _ => Err(MeshError::UnsupportedFormat {
@@ -80,8 +80,8 @@ pub fn load_mesh(path: impl AsRef<Path>) -> Result<Mesh, MeshError> {
     }
 }
 
-fn open(path: &Path) -> Result<std::fs::File, MeshError> {
-    std::fs::File::open(path).map_err(|e| io_error(path, e))
+fn open(path: &Path) -> Result<std::io::Take<std::fs::File>, MeshError> {
+    open_regular(path, MAX_MESH_FILE_BYTES).map_err(|e| io_error(path, e))
 }
 
 pub(crate) fn io_error(path: &Path, source: std::io::Error) -> MeshError {
@@ -113,18 +113,150 @@ pub(crate) fn data_error(path: &Path, source: MeshDataError) -> MeshError {
     }
 }
 
+/// The largest mesh file [`load_mesh`] reads (2 GiB): far above the largest scans in use
+/// (≈ 300 MB), and a bound on what a hostile or mistaken path can make us read.
+pub const MAX_MESH_FILE_BYTES: u64 = 2 << 30;
+
+/// Opens `path` for reading only when it is a regular file (after following symbolic links) of
+/// at most `max_bytes` bytes, and returns a reader that stops after `max_bytes + 1` bytes (a
+/// file that grows while it is read is still bounded: see [`read_bounded`]).
+///
+/// Device nodes (`/dev/zero`, `/dev/urandom`), FIFOs, sockets and folders are refused with an
+/// [`std::io::ErrorKind::InvalidInput`] error saying what the path is; a file above the limit
+/// with [`std::io::ErrorKind::FileTooLarge`]. Messages do not repeat the path: callers name it.
+pub fn open_regular(path: &Path, max_bytes: u64) -> std::io::Result<std::io::Take<std::fs::File>> {
+    let meta = std::fs::metadata(path)?;
+    check_regular(&meta, max_bytes)?;
+    let file = std::fs::File::open(path)?;
+    // Checked again on the open handle: the path may have been swapped in between.
+    check_regular(&file.metadata()?, max_bytes)?;
+    Ok(file.take(max_bytes.saturating_add(1)))
+}
+
+fn check_regular(meta: &std::fs::Metadata, max_bytes: u64) -> std::io::Result<()> {
+    let ft = meta.file_type();
+    if !ft.is_file() {
+        let what = if ft.is_dir() {
+            "a folder"
+        } else {
+            file_type_name(&ft)
+        };
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!("not a regular file ({what})"),
+        ));
+    }
+    if meta.len() > max_bytes {
+        return Err(too_large(meta.len(), max_bytes));
+    }
+    Ok(())
+}
+
+#[cfg(unix)]
+fn file_type_name(ft: &std::fs::FileType) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    if ft.is_char_device() {
+        "a character device"
+    } else if ft.is_block_device() {
+        "a block device"
+    } else if ft.is_fifo() {
+        "a FIFO"
+    } else if ft.is_socket() {
+        "a socket"
+    } else {
+        "a special file"
+    }
+}
+
+#[cfg(not(unix))]
+fn file_type_name(_: &std::fs::FileType) -> &'static str {
+    "a special file"
+}
+
+fn too_large(len: u64, max_bytes: u64) -> std::io::Error {
+    std::io::Error::new(
+        std::io::ErrorKind::FileTooLarge,
+        format!(
+            "the file is too large ({} bytes; at most {} bytes are read)",
+            len, max_bytes
+        ),
+    )
+}
+
+/// Reads a whole regular file of at most `max_bytes` bytes ([`open_regular`]); a file that
+/// grew past the limit while being read is refused too.
+pub fn read_bounded(path: &Path, max_bytes: u64) -> std::io::Result<Vec<u8>> {
+    let mut reader = open_regular(path, max_bytes)?;
+    let mut bytes = Vec::new();
+    reader.read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > max_bytes {
+        return Err(too_large(bytes.len() as u64, max_bytes));
+    }
+    Ok(bytes)
+}
+
 /// Reads everything from `reader`.
 pub(crate) fn read_all(mut reader: impl Read, path: &Path) -> Result<Vec<u8>, MeshError> {
     let mut bytes = Vec::new();
     reader
         .read_to_end(&mut bytes)
         .map_err(|e| io_error(path, e))?;
+    if bytes.len() as u64 > MAX_MESH_FILE_BYTES {
+        return Err(io_error(
+            path,
+            too_large(bytes.len() as u64, MAX_MESH_FILE_BYTES),
+        ));
+    }
     Ok(bytes)
+}
+
+/// Temporary files of the writes in flight ([`write_atomic_with`]); renames happen under this
+/// lock, so [`abandon_pending_writes`] sees every temporary file that may still be renamed.
+static PENDING: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+
+fn pending() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
+    PENDING.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Held while the process exits after a signal: no write in flight can rename its temporary
+/// file into place any more.
+pub struct PendingWritesGuard {
+    _lock: std::sync::MutexGuard<'static, Vec<PathBuf>>,
+}
+
+/// For a signal handler that is about to exit the process (e.g. on Ctrl-C or SIGTERM): removes
+/// the temporary file of every [`write_atomic_with`] in flight and returns a guard that stops
+/// them from renaming anything; exit while holding it. Files already renamed stay complete;
+/// none is left half-written and no temporary file is left behind. Not async-signal-safe: call
+/// it from a handler that runs on an ordinary thread (the `ctrlc` crate's).
+pub fn abandon_pending_writes() -> PendingWritesGuard {
+    let mut lock = pending();
+    for tmp in lock.drain(..) {
+        let _ = std::fs::remove_file(tmp);
+    }
+    PendingWritesGuard { _lock: lock }
+}
+
+/// Fault injection for tests: `INCONTEXT_TEST_WRITE_DELAY_MS=N` sleeps N ms between writing a
+/// temporary file and renaming it, so a test can interrupt a write in flight.
+fn test_write_delay() -> Option<std::time::Duration> {
+    static DELAY: std::sync::OnceLock<Option<std::time::Duration>> = std::sync::OnceLock::new();
+    *DELAY.get_or_init(|| {
+        std::env::var("INCONTEXT_TEST_WRITE_DELAY_MS")
+            .ok()
+            .and_then(|v| v.parse::<u64>().ok())
+            .map(std::time::Duration::from_millis)
+    })
 }
 
 /// Writes `path` atomically: `write` fills a temporary file next to `path`, which is flushed,
 /// synced and then renamed over `path`. On any failure the temporary file is removed and
-/// `path` is left untouched, so a crash never leaves a half-written file behind.
+/// `path` is left untouched, so a crash never leaves a half-written file behind (and
+/// [`abandon_pending_writes`] removes the temporary file when the process is interrupted).
+///
+/// An existing `path` must be a regular file: a symbolic link, device node (`/dev/null`),
+/// FIFO, socket or folder is refused ([`std::io::ErrorKind::InvalidInput`]), since the rename
+/// would replace it.
 ///
 /// Generic over the caller's error type: `io_error` turns the I/O failures of the temporary
 /// file into it (every crate that writes files uses this one function).
@@ -146,6 +278,7 @@ pub fn write_atomic_with<E>(
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
+    check_replaceable(path).map_err(&io_error)?;
     let (file, tmp) = loop {
         let n = COUNTER.fetch_add(1, Ordering::Relaxed);
         let mut name = std::ffi::OsString::from(".");
@@ -157,7 +290,10 @@ pub fn write_atomic_with<E>(
             .create_new(true)
             .open(&tmp)
         {
-            Ok(f) => break (f, tmp),
+            Ok(f) => {
+                pending().push(tmp.clone());
+                break (f, tmp);
+            }
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
             Err(e) => return Err(io_error(e)),
         }
@@ -168,12 +304,47 @@ pub fn write_atomic_with<E>(
         let file = out.into_inner().map_err(|e| io_error(e.into_error()))?;
         file.sync_all().map_err(&io_error)?;
         drop(file);
-        std::fs::rename(&tmp, path).map_err(&io_error)
+        if let Some(delay) = test_write_delay() {
+            std::thread::sleep(delay);
+        }
+        let mut lock = pending();
+        // Checked again just before the rename: the path may have changed meanwhile.
+        let renamed = check_replaceable(path)
+            .and_then(|_| std::fs::rename(&tmp, path))
+            .map_err(&io_error);
+        lock.retain(|p| p != &tmp);
+        if renamed.is_err() {
+            let _ = std::fs::remove_file(&tmp);
+        }
+        renamed
     })();
     if result.is_err() {
+        let mut lock = pending();
         let _ = std::fs::remove_file(&tmp);
+        lock.retain(|p| p != &tmp);
     }
     result
+}
+
+/// Fails when `path` exists and is not a regular file (see [`write_atomic_with`]).
+fn check_replaceable(path: &Path) -> std::io::Result<()> {
+    match std::fs::symlink_metadata(path) {
+        Ok(meta) if !meta.file_type().is_file() => {
+            let ft = meta.file_type();
+            let what = if ft.is_symlink() {
+                "a symbolic link"
+            } else if ft.is_dir() {
+                "a folder"
+            } else {
+                file_type_name(&ft)
+            };
+            Err(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                format!("refusing to replace {what} with a file"),
+            ))
+        }
+        _ => Ok(()),
+    }
 }
 
 /// [`write_atomic_with`] for the mesh and cloud writers of this module.

@@ -47,7 +47,8 @@ pub fn read_ply_points<R: Read>(reader: R, path: &Path) -> Result<PointCloud, Me
 /// Reads a point cloud from the PLY file at `path`; see [`read_ply_points`].
 pub fn read_ply_cloud(path: impl AsRef<Path>) -> Result<PointCloud, MeshError> {
     let path = path.as_ref();
-    let file = std::fs::File::open(path).map_err(|e| io_error(path, e))?;
+    let file =
+        super::open_regular(path, super::MAX_MESH_FILE_BYTES).map_err(|e| io_error(path, e))?;
     read_ply_points(file, path)
 }
 

@@ -1,0 +1,539 @@
+//! Hypothesise and verify: many pose hypotheses, each scored by rendering the model at that
+//! pose and comparing it with the observed depth.
+//!
+//! - [`rotation_set`]: rotations that cover SO(3) evenly (the finite rotation groups of the
+//!   tetrahedron, cube and icosahedron: 12, 24, 60). The network is right when the rotation
+//!   between model and view falls in the family it was trained on; registering a rotated copy
+//!   of the model for each rotation puts one copy inside that family.
+//! - [`Observation`]: the observed depth around the object, cropped and reduced to at most
+//!   [`SCORE_SIDE`] pixels a side — from a depth map and the object mask, or, for point inputs,
+//!   from the observed points splatted into a virtual camera at the origin.
+//! - [`Observation::score`]: renders the model (its mesh with the CPU renderer, or its points
+//!   splatted) at a pose into the same crop and counts agreeing pixels, free-space violations
+//!   (the model in front of the observed surface, where the sensor would have seen it) and
+//!   coverage of the object mask. Poses equivalent under the object's symmetry render alike
+//!   and so score alike.
+//!
+//! Units: normalised object units (the model spans [-1, 1] on its longest side); camera frame
+//! OpenCV (x right, y down, z forward); poses map model → camera; depth is camera-frame z, 0 =
+//! no return.
+
+use std::sync::Arc;
+
+use ic_geometry::glam::{DMat3, DQuat, DVec3, Vec3};
+use ic_geometry::{DepthImage, Image, Intrinsics, Mask, Mesh, Pose};
+use ic_render::{Camera, CpuRenderer, Renderer, Scene};
+use serde::Serialize;
+
+/// The longest side of the scoring crop, in pixels: a pose is scored on at most 96×96 pixels
+/// around the object (≈ 1–3 ms per render on one core for meshes of a few thousand triangles).
+pub const SCORE_SIDE: u32 = 96;
+
+/// Depth agreement tolerance at camera distance `z` (normalised units): 0.03 (1.5 % of the
+/// object's size) plus 0.5 % of the distance, so that sensor noise, which grows with distance,
+/// does not read as disagreement.
+pub fn depth_tolerance(z: f32) -> f32 {
+    0.03 + 0.005 * z
+}
+
+/// Rotations covering SO(3) evenly: `count` ∈ {1, 12, 24, 60} (identity; the rotation groups
+/// of the tetrahedron, the cube and the icosahedron). Row-major rotations as [`Pose`]s with
+/// zero translation; the identity is first.
+pub fn rotation_set(count: usize) -> Result<Vec<Pose>, String> {
+    let quats: Vec<DQuat> = match count {
+        1 => vec![DQuat::IDENTITY],
+        12 => tetrahedral(),
+        24 => octahedral(),
+        60 => icosahedral(),
+        other => {
+            return Err(format!(
+                "{other} rotations: expected 1, 12, 24 or 60 (the rotation groups that cover SO(3) evenly)"
+            ));
+        }
+    };
+    Ok(quats
+        .into_iter()
+        .map(|q| Pose::new(DMat3::from_quat(q.normalize()), DVec3::ZERO))
+        .collect())
+}
+
+/// The 12 rotations of the tetrahedral group: the unit quaternions ±1, ±i, ±j, ±k and
+/// (±1 ± i ± j ± k)/2, up to sign.
+fn tetrahedral() -> Vec<DQuat> {
+    let mut out = vec![
+        DQuat::from_xyzw(0.0, 0.0, 0.0, 1.0),
+        DQuat::from_xyzw(1.0, 0.0, 0.0, 0.0),
+        DQuat::from_xyzw(0.0, 1.0, 0.0, 0.0),
+        DQuat::from_xyzw(0.0, 0.0, 1.0, 0.0),
+    ];
+    for sx in [-0.5, 0.5] {
+        for sy in [-0.5, 0.5] {
+            for sz in [-0.5, 0.5] {
+                out.push(DQuat::from_xyzw(sx, sy, sz, 0.5));
+            }
+        }
+    }
+    out
+}
+
+/// The 24 rotations of the cube: the tetrahedral group and the 12 quaternions with two
+/// non-zero components ±1/√2 (up to sign).
+fn octahedral() -> Vec<DQuat> {
+    let mut out = tetrahedral();
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    let axes = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)];
+    for (a, b) in axes {
+        for sb in [-h, h] {
+            let mut v = [0.0; 4];
+            v[a] = h;
+            v[b] = sb;
+            // v = (w, x, y, z)
+            out.push(DQuat::from_xyzw(v[1], v[2], v[3], v[0]));
+        }
+    }
+    out
+}
+
+/// The 60 rotations of the icosahedron: the tetrahedral group and the even permutations of
+/// (±φ, ±1, ±1/φ, 0)/2 (up to sign).
+fn icosahedral() -> Vec<DQuat> {
+    let phi = (1.0 + 5f64.sqrt()) / 2.0;
+    let base = [phi / 2.0, 0.5, 1.0 / (2.0 * phi), 0.0];
+    let even_perms: [[usize; 4]; 12] = [
+        [0, 1, 2, 3],
+        [0, 2, 3, 1],
+        [0, 3, 1, 2],
+        [1, 0, 3, 2],
+        [1, 2, 0, 3],
+        [1, 3, 2, 0],
+        [2, 0, 1, 3],
+        [2, 1, 3, 0],
+        [2, 3, 0, 1],
+        [3, 0, 2, 1],
+        [3, 1, 0, 2],
+        [3, 2, 1, 0],
+    ];
+    let mut out = tetrahedral();
+    for p in even_perms {
+        for s1 in [-1.0, 1.0] {
+            for s2 in [-1.0, 1.0] {
+                for s3 in [-1.0, 1.0] {
+                    let signs = [1.0, s1, s2, s3];
+                    let mut v = [0.0; 4];
+                    for k in 0..4 {
+                        v[p[k]] = base[k] * signs[k];
+                    }
+                    let q = DQuat::from_xyzw(v[1], v[2], v[3], v[0]);
+                    if !out.iter().any(|o| o.dot(q).abs() > 1.0 - 1e-9) {
+                        out.push(q);
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+/// How the model is drawn into a crop: its mesh (normalised) or its points (splatted).
+#[derive(Clone)]
+pub enum ModelShape {
+    Mesh(Arc<Mesh>),
+    /// Surface points (normalised units), each drawn as a square of side `2·radius` (normalised
+    /// units) facing the camera; `radius` ≈ the points' spacing, so the squares close the
+    /// surface.
+    Points { points: Arc<Vec<Vec3>>, radius: f32 },
+}
+
+impl ModelShape {
+    /// Points splatted with a radius of their median nearest-neighbour distance (at least
+    /// `min_radius`, normalised units).
+    pub fn points(points: Vec<Vec3>, min_radius: f32) -> ModelShape {
+        let mut d: Vec<f32> = match ic_geometry::KdTree::new(&points) {
+            Ok(tree) => points
+                .iter()
+                .filter_map(|p| tree.k_nearest(*p, 2).get(1).map(|n| n.distance))
+                .collect(),
+            Err(_) => Vec::new(),
+        };
+        d.sort_by(f32::total_cmp);
+        let median = d.get(d.len() / 2).copied().unwrap_or(min_radius);
+        ModelShape::Points {
+            points: Arc::new(points),
+            radius: median.max(min_radius),
+        }
+    }
+}
+
+/// The observed depth around the object, at reduced resolution.
+#[derive(Clone, Debug)]
+pub struct Observation {
+    /// The crop's intrinsics (principal point shifted, focal lengths reduced).
+    pub intrinsics: Intrinsics,
+    /// Observed depth in the crop (normalised units; 0 = no return).
+    pub depth: DepthImage,
+    /// The object's pixels in the crop.
+    pub mask: Mask,
+    /// Pixels of the mask with a return.
+    pub mask_pixels: usize,
+}
+
+/// The render-and-compare score of one pose.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Score {
+    /// In [0, 1]: coverage × (1 − 3·violation), clamped at 0.
+    pub score: f64,
+    /// Fraction of the object mask's pixels whose depth the model explains.
+    pub coverage: f64,
+    /// Fraction of the model's rendered pixels (where the sensor returned) that agree.
+    pub agreement: f64,
+    /// Fraction of the model's rendered pixels in front of the observed surface (free-space
+    /// violations).
+    pub violation: f64,
+}
+
+impl Observation {
+    /// From a depth map (normalised units), its intrinsics and the object mask: the mask's
+    /// bounding box grown by 30 % on each side (clamped to the image), reduced so its longest
+    /// side is at most [`SCORE_SIDE`]. `None` when the mask has no pixel with a return.
+    pub fn from_depth(depth: &DepthImage, k: &Intrinsics, mask: &Mask) -> Option<Observation> {
+        let (w, h) = (depth.width as usize, depth.height as usize);
+        let (mut u0, mut v0, mut u1, mut v1) = (usize::MAX, usize::MAX, 0usize, 0usize);
+        for v in 0..h {
+            for u in 0..w {
+                if mask.data[v * w + u] && depth.data[v * w + u] > 0.0 {
+                    u0 = u0.min(u);
+                    v0 = v0.min(v);
+                    u1 = u1.max(u);
+                    v1 = v1.max(v);
+                }
+            }
+        }
+        if u0 == usize::MAX {
+            return None;
+        }
+        let grow = |lo: usize, hi: usize, max: usize| {
+            let m = ((hi - lo + 1) as f64 * 0.3).ceil() as usize;
+            (lo.saturating_sub(m), (hi + m).min(max - 1))
+        };
+        let (u0, u1) = grow(u0, u1, w);
+        let (v0, v1) = grow(v0, v1, h);
+        let (cw, ch) = (u1 - u0 + 1, v1 - v0 + 1);
+        let f = cw.max(ch).div_ceil(SCORE_SIDE as usize).max(1);
+        let (ow, oh) = (cw.div_ceil(f), ch.div_ceil(f));
+        // Crop pixel i samples source pixel u0 + i·f + ⌊f/2⌋: the crop's camera puts its pixel
+        // centres exactly there.
+        let half = (f / 2) as f64;
+        let intrinsics = Intrinsics {
+            fx: k.fx / f as f64,
+            fy: k.fy / f as f64,
+            cx: (k.cx - u0 as f64 - half) / f as f64,
+            cy: (k.cy - v0 as f64 - half) / f as f64,
+            width: ow as u32,
+            height: oh as u32,
+        };
+        let mut d = Image::filled(ow as u32, oh as u32, 0.0f32);
+        let mut m = Image::filled(ow as u32, oh as u32, false);
+        let mut mask_pixels = 0;
+        for j in 0..oh {
+            for i in 0..ow {
+                let u = (u0 + i * f + f / 2).min(w - 1);
+                let v = (v0 + j * f + f / 2).min(h - 1);
+                let z = depth.data[v * w + u];
+                d.data[j * ow + i] = z;
+                let inside = mask.data[v * w + u];
+                m.data[j * ow + i] = inside;
+                mask_pixels += (inside && z > 0.0) as usize;
+            }
+        }
+        Some(Observation {
+            intrinsics,
+            depth: d,
+            mask: m,
+            mask_pixels,
+        })
+    }
+
+    /// From observed points alone (camera frame, normalised units; e.g. a registration
+    /// case's `target.ply`): a virtual pinhole camera at the origin looking down +z whose
+    /// pixel at the cloud's median depth is `pixel` units wide (about the voxel size), the
+    /// points z-buffered into it with a one-pixel splat; every covered pixel is the mask.
+    pub fn from_points(points: &[Vec3], pixel: f32) -> Option<Observation> {
+        let finite: Vec<Vec3> = points
+            .iter()
+            .copied()
+            .filter(|p| p.is_finite() && p.z > 1e-3)
+            .collect();
+        if finite.len() < 3 {
+            return None;
+        }
+        let mut zs: Vec<f32> = finite.iter().map(|p| p.z).collect();
+        zs.sort_by(f32::total_cmp);
+        let z_med = zs[zs.len() / 2];
+        let f = (z_med / pixel) as f64;
+        let (mut u0, mut v0, mut u1, mut v1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+        for p in &finite {
+            let (u, v) = (f * (p.x / p.z) as f64, f * (p.y / p.z) as f64);
+            u0 = u0.min(u);
+            v0 = v0.min(v);
+            u1 = u1.max(u);
+            v1 = v1.max(v);
+        }
+        let margin = 0.3 * (u1 - u0).max(v1 - v0) + 2.0;
+        let side = ((u1 - u0).max(v1 - v0) + 2.0 * margin).ceil();
+        let scale = (side / SCORE_SIDE as f64).max(1.0);
+        let f = f / scale;
+        let (u0, v0, u1, v1) = (u0 / scale, v0 / scale, u1 / scale, v1 / scale);
+        let margin = margin / scale;
+        let width = ((u1 - u0) + 2.0 * margin).ceil().max(1.0) as u32;
+        let height = ((v1 - v0) + 2.0 * margin).ceil().max(1.0) as u32;
+        let intrinsics = Intrinsics {
+            fx: f,
+            fy: f,
+            cx: margin - u0,
+            cy: margin - v0,
+            width,
+            height,
+        };
+        let depth = splat(&finite, &Pose::IDENTITY, &intrinsics, 0.75 * pixel);
+        let mask = Image {
+            width,
+            height,
+            data: depth.data.iter().map(|&z| z > 0.0).collect(),
+        };
+        let mask_pixels = mask.data.iter().filter(|&&m| m).count();
+        Some(Observation {
+            intrinsics,
+            depth,
+            mask,
+            mask_pixels,
+        })
+    }
+
+    /// Renders `model` at `pose` (model → camera) into the crop and compares it with the
+    /// observed depth. Deterministic; equal renders give equal scores.
+    ///
+    /// Coverage comes from the rendered depth (mesh, or splatted points). Free-space
+    /// violations come from the rendered depth for a mesh, and for points from the points
+    /// themselves, unsplatted (a splat spills past the silhouette onto the background).
+    pub fn score(&self, model: &ModelShape, pose: &Pose) -> Score {
+        match model {
+            ModelShape::Mesh(mesh) => {
+                let scene = Scene::single(mesh.clone(), Pose::IDENTITY, 1);
+                let mut camera = Camera::new(self.intrinsics, *pose);
+                camera.near = 1e-3;
+                match CpuRenderer::new().render(&scene, &camera) {
+                    Ok(r) => {
+                        let (coverage, agreement, violation) = self.compare(&r.depth, 0.0);
+                        Score::new(coverage, agreement, violation)
+                    }
+                    Err(_) => Score::default(),
+                }
+            }
+            ModelShape::Points { points, radius } => {
+                // Splatted squares stand off a slanted surface by up to their radius.
+                let rendered = splat(points, pose, &self.intrinsics, *radius);
+                let (coverage, agreement, _) = self.compare(&rendered, *radius);
+                let violation = self.point_violations(points, pose);
+                Score::new(coverage, agreement, violation)
+            }
+        }
+    }
+
+    /// (coverage, agreement, violation) of a rendered depth against the observed one.
+    fn compare(&self, rendered: &DepthImage, slack: f32) -> (f64, f64, f64) {
+        let (mut with_return, mut agree, mut violate, mut covered) = (0usize, 0usize, 0usize, 0);
+        for ((&r, &o), &m) in rendered
+            .data
+            .iter()
+            .zip(&self.depth.data)
+            .zip(&self.mask.data)
+        {
+            if r <= 0.0 || o <= 0.0 {
+                continue;
+            }
+            with_return += 1;
+            let tol = depth_tolerance(o) + slack;
+            if (r - o).abs() <= tol {
+                agree += 1;
+                covered += m as usize;
+            } else if r < o - tol {
+                violate += 1;
+            }
+        }
+        if with_return == 0 || self.mask_pixels == 0 {
+            return (0.0, 0.0, 0.0);
+        }
+        (
+            covered as f64 / self.mask_pixels as f64,
+            agree as f64 / with_return as f64,
+            violate as f64 / with_return as f64,
+        )
+    }
+
+    /// Fraction of the points (at `pose`) landing on a pixel with a return that lie in front of
+    /// the observed surface by more than the tolerance.
+    fn point_violations(&self, points: &[Vec3], pose: &Pose) -> f64 {
+        let k = &self.intrinsics;
+        let (w, h) = (k.width as i64, k.height as i64);
+        let (mut landed, mut front) = (0usize, 0usize);
+        for p in points {
+            let c = pose.apply_f32(*p);
+            if c.z <= 1e-3 {
+                continue;
+            }
+            let u = (k.fx * (c.x / c.z) as f64 + k.cx).round() as i64;
+            let v = (k.fy * (c.y / c.z) as f64 + k.cy).round() as i64;
+            if u < 0 || v < 0 || u >= w || v >= h {
+                continue;
+            }
+            let o = self.depth.data[(v * w + u) as usize];
+            if o <= 0.0 {
+                continue;
+            }
+            landed += 1;
+            front += (c.z < o - depth_tolerance(o)) as usize;
+        }
+        if landed == 0 {
+            0.0
+        } else {
+            front as f64 / landed as f64
+        }
+    }
+}
+
+impl Score {
+    /// `coverage × (1 − 3·violation)`, clamped to [0, 1]: a pose must explain the object's
+    /// pixels and must not put the model where the sensor saw through.
+    fn new(coverage: f64, agreement: f64, violation: f64) -> Score {
+        Score {
+            score: (coverage * (1.0 - 3.0 * violation)).clamp(0.0, 1.0),
+            coverage,
+            agreement,
+            violation,
+        }
+    }
+}
+
+/// Points (model frame) moved by `pose` and z-buffered into an image of `k`, each filling the
+/// square of half-side `radius` (normalised units) around it, seen face-on.
+fn splat(points: &[Vec3], pose: &Pose, k: &Intrinsics, radius: f32) -> DepthImage {
+    let (w, h) = (k.width as i64, k.height as i64);
+    let mut depth = Image::filled(k.width, k.height, 0.0f32);
+    for p in points {
+        let c = pose.apply_f32(*p);
+        if c.z <= 1e-3 {
+            continue;
+        }
+        let (u, v) = (k.fx * (c.x / c.z) as f64 + k.cx, k.fy * (c.y / c.z) as f64 + k.cy);
+        let (ru, rv) = (k.fx * (radius / c.z) as f64, k.fy * (radius / c.z) as f64);
+        let (ua, ub) = ((u - ru).round().max(0.0) as i64, (u + ru).round() as i64);
+        let (va, vb) = ((v - rv).round().max(0.0) as i64, (v + rv).round() as i64);
+        for vv in va..=vb.min(h - 1) {
+            for uu in ua..=ub.min(w - 1) {
+                let z = &mut depth.data[(vv * w + uu) as usize];
+                if *z == 0.0 || c.z < *z {
+                    *z = c.z;
+                }
+            }
+        }
+    }
+    depth
+}
+
+/// `pose ∘ rotation`: the pose of the original model given the pose of its copy rotated by
+/// `rotation` (`x_copy = rotation · x`).
+pub fn unrotate(pose_of_copy: &Pose, rotation: &Pose) -> Pose {
+    pose_of_copy.compose(rotation)
+}
+
+/// Rotates points about the origin of the model frame.
+pub fn rotate_points(points: &[Vec3], rotation: &Pose) -> Vec<Vec3> {
+    points.iter().map(|p| rotation.apply_f32(*p)).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rotation_sets_are_groups_of_distinct_rotations() {
+        for n in [1, 12, 24, 60] {
+            let set = rotation_set(n).unwrap();
+            assert_eq!(set.len(), n);
+            for (i, a) in set.iter().enumerate() {
+                for b in &set[..i] {
+                    assert!(a.rotation_angle_to(b) > 1e-6, "duplicates in the {n}-set");
+                }
+                // Closed under composition: a·b is in the set.
+                for b in &set {
+                    let ab = a.compose(b);
+                    assert!(
+                        set.iter().any(|c| c.rotation_angle_to(&ab) < 1e-6),
+                        "the {n}-set is not closed"
+                    );
+                }
+            }
+        }
+        assert!(rotation_set(7).is_err());
+    }
+
+    /// A procedural object (normalised) seen from 3 units by a 160×120 camera: its depth map,
+    /// mask, intrinsics, mesh and true pose.
+    fn scene(seed: u64) -> (DepthImage, Mask, Intrinsics, Arc<Mesh>, Pose) {
+        let mut mesh = ic_geometry::shapes::random_object(seed);
+        mesh.normalise().unwrap();
+        let mesh = Arc::new(mesh);
+        let k = Intrinsics::new(131.25, 131.25, 79.5, 59.5, 160, 120).unwrap();
+        let truth = ic_geometry::look_at(DVec3::new(1.8, 1.2, 1.8), DVec3::ZERO, DVec3::Z).unwrap();
+        let view = CpuRenderer::new()
+            .render(&Scene::single(mesh.clone(), Pose::IDENTITY, 1), &Camera::new(k, truth))
+            .unwrap();
+        (view.depth.clone(), view.mask(1), k, mesh, truth)
+    }
+
+    #[test]
+    fn the_true_pose_scores_near_one_and_a_flip_far_below() {
+        for seed in [1, 2, 3] {
+            let (depth, mask, k, mesh, truth) = scene(seed);
+            let obs = Observation::from_depth(&depth, &k, &mask).unwrap();
+            let shape = ModelShape::Mesh(mesh.clone());
+            let right = obs.score(&shape, &truth);
+            assert!(right.score > 0.9, "seed {seed}: {right:?}");
+            // The true pose turned 180° about the camera's viewing axis through the object.
+            let centre = truth.apply(DVec3::ZERO);
+            let flip = Pose::from_translation(centre)
+                .compose(&Pose::from_axis_angle(DVec3::Z, std::f64::consts::PI, DVec3::ZERO))
+                .compose(&Pose::from_translation(-centre))
+                .compose(&truth);
+            let wrong = obs.score(&shape, &flip);
+            assert!(wrong.score < right.score - 0.2, "seed {seed}: {wrong:?} vs {right:?}");
+            // Points splatted score the true pose well too.
+            let pts = ic_geometry::sampling::sample_surface_uniform(&mesh, 4096, seed)
+                .unwrap()
+                .points;
+            let splat = ModelShape::points(pts, 0.01);
+            let right_pts = obs.score(&splat, &truth);
+            assert!(right_pts.score > 0.8, "seed {seed}: {right_pts:?}");
+            assert!(obs.score(&splat, &flip).score < right_pts.score - 0.2);
+        }
+    }
+
+    #[test]
+    fn every_rotation_is_within_a_covering_radius_of_the_24_set() {
+        // Seeded random rotations: each is within 63° of a cube-group rotation (the group's
+        // covering radius is ≈ 62.8°).
+        use rand::{Rng, SeedableRng};
+        let set = rotation_set(24).unwrap();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        for _ in 0..500 {
+            let g = |rng: &mut rand_chacha::ChaCha8Rng| rng.random::<f64>() * 2.0 - 1.0;
+            let (w, x, y, z) = (g(&mut rng), g(&mut rng), g(&mut rng), g(&mut rng));
+            let r = Pose::from_quaternion(w, x, y, z, DVec3::ZERO).unwrap();
+            let nearest = set
+                .iter()
+                .map(|s| s.rotation_angle_to(&r).to_degrees())
+                .fold(f64::MAX, f64::min);
+            assert!(nearest < 63.0, "{nearest}");
+        }
+    }
+}
