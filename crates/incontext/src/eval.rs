@@ -73,6 +73,10 @@ pub struct EvalArgs {
     /// Rotation hypotheses of the `-verify` methods: 12, 24 (default) or 60.
     #[arg(long, value_parser = crate::register::parse_rotations)]
     pub rotations: Option<usize>,
+    /// Model points per rotated copy in the `-verify` methods' sweep (observed: ¾ of it);
+    /// default: the pipeline's.
+    #[arg(long)]
+    pub sweep_points: Option<usize>,
 }
 
 impl EvalArgs {
@@ -80,6 +84,9 @@ impl EvalArgs {
         PipelineOptions {
             hypotheses: self.hypotheses as usize,
             rotations: self.rotations.unwrap_or(1),
+            sweep_points: self
+                .sweep_points
+                .unwrap_or(PipelineOptions::default().sweep_points),
             ..PipelineOptions::default()
         }
     }

@@ -519,6 +519,31 @@ mod tests {
     }
 
     #[test]
+    fn poses_equivalent_under_a_cylinders_symmetry_score_alike() {
+        let mut mesh = ic_geometry::shapes::cylinder(0.6, 1.0, 64).unwrap();
+        mesh.normalise().unwrap();
+        let mesh = Arc::new(mesh);
+        let k = Intrinsics::new(131.25, 131.25, 79.5, 59.5, 160, 120).unwrap();
+        let truth = ic_geometry::look_at(DVec3::new(2.2, 1.0, 1.5), DVec3::ZERO, DVec3::Z).unwrap();
+        let view = CpuRenderer::new()
+            .render(&Scene::single(mesh.clone(), Pose::IDENTITY, 1), &Camera::new(k, truth))
+            .unwrap();
+        let obs = Observation::from_depth(&view.depth, &k, &view.mask(1)).unwrap();
+        let shape = ModelShape::Mesh(mesh);
+        let base = obs.score(&shape, &truth);
+        assert!(base.score > 0.9, "{base:?}");
+        // Turned about the cylinder's own axis (z of the model frame): the same surface.
+        for deg in [17.0f64, 90.0, 180.0, 271.0] {
+            let turned = truth.compose(&Pose::from_axis_angle(DVec3::Z, deg.to_radians(), DVec3::ZERO));
+            let s = obs.score(&shape, &turned);
+            assert!((s.score - base.score).abs() < 0.03, "{deg}°: {s:?} vs {base:?}");
+        }
+        // Tipped over by 90°: not equivalent, scores far lower.
+        let tipped = truth.compose(&Pose::from_axis_angle(DVec3::X, 90f64.to_radians(), DVec3::ZERO));
+        assert!(obs.score(&shape, &tipped).score < base.score - 0.2);
+    }
+
+    #[test]
     fn every_rotation_is_within_a_covering_radius_of_the_24_set() {
         // Seeded random rotations: each is within 63° of a cube-group rotation (the group's
         // covering radius is ≈ 62.8°).

@@ -1,0 +1,87 @@
+//! `register --rotations`: rotation hypotheses verified by render-and-compare, end to end.
+
+use serde_json::Value;
+
+mod common;
+use common::*;
+
+fn register_json(sc: &SmallScene, extra: &[&str]) -> (Option<i32>, Value, String) {
+    let mut args = vec![
+        "register".to_string(),
+        "--model".into(),
+        sc.p("model.ply"),
+        "--depth".into(),
+        sc.p("depth.png"),
+        "--camera".into(),
+        sc.p("camera.json"),
+        "--json".into(),
+    ];
+    args.extend(extra.iter().map(|s| s.to_string()));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let o = incontext(&args);
+    let v: Value = serde_json::from_slice(&o.stdout).unwrap_or(Value::Null);
+    (o.status.code(), v, stderr(&o))
+}
+
+#[test]
+fn rotation_hypotheses_find_the_pose_verify_it_and_repeat_exactly() {
+    let sc = SmallScene::new();
+    let (code, a, err) = register_json(&sc, &["--rotations", "24", "--mask", &sc.p("mask.png")]);
+    assert_eq!(code, Some(0), "{err}");
+    assert_eq!(a["verdict"], "ok");
+    assert_eq!(a["details"]["hypotheses_made"], 24);
+    let v = &a["details"]["verification"];
+    assert!(v["score"].as_f64().unwrap() > 0.8, "{v}");
+    // ADD-S against the truth (the object may be symmetric: the rotation error need not be
+    // small), in mm, against a 0.1·diameter bound.
+    let est = pose_of(&a["pose"]);
+    let mesh = ic_geometry::io::load_mesh(sc.path("model.ply")).unwrap();
+    let moved: Vec<_> = mesh.vertices.iter().map(|v| est.apply_f32(*v)).collect();
+    let truth: Vec<_> = mesh.vertices.iter().map(|v| sc.truth.apply_f32(*v)).collect();
+    let add_s = truth
+        .iter()
+        .map(|t| moved.iter().map(|m| m.distance(*t)).fold(f32::MAX, f32::min))
+        .sum::<f32>()
+        / truth.len() as f32;
+    let diameter = mesh
+        .vertices
+        .iter()
+        .flat_map(|a| mesh.vertices.iter().map(move |b| a.distance(*b)))
+        .fold(0.0f32, f32::max);
+    assert!(add_s < 0.1 * diameter, "ADD-S {add_s} mm, diameter {diameter} mm");
+    // Seeded: the same numbers again, and with another thread count.
+    let (_, b, _) = register_json(
+        &sc,
+        &["--rotations", "24", "--mask", &sc.p("mask.png"), "--threads", "1"],
+    );
+    assert_eq!(a["pose"], b["pose"]);
+    assert_eq!(a["details"]["verification"], b["details"]["verification"]);
+}
+
+#[test]
+fn rotation_hypotheses_without_the_object_find_nothing() {
+    let sc = SmallScene::new();
+    let flat = sc.path("flat.png");
+    ic_render::io::write_depth_png(&flat, &ic_geometry::Image::filled(160, 120, 1.0), 0.1)
+        .unwrap();
+    let o = incontext(&[
+        "register",
+        "--model",
+        &sc.p("model.ply"),
+        "--depth",
+        s(&flat),
+        "--camera",
+        &sc.p("camera.json"),
+        "--rotations",
+        "24",
+    ]);
+    assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+}
+
+#[test]
+fn a_rotation_count_that_is_no_group_is_bad_input() {
+    let sc = SmallScene::new();
+    let (code, _, err) = register_json(&sc, &["--rotations", "7"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("1, 12, 24 or 60"), "{err}");
+}
