@@ -1,15 +1,19 @@
 //! Benchmarks of `ic_data`: samples/s of the object-alone and room generators through the
-//! prefetching iterator with 2 worker threads (the 2-core target machine), plus one sample.
+//! prefetching iterator with 2 worker threads (the 2-core target machine), plus one sample;
+//! and one training sample of the paper's protocol beside one of the deployment protocol
+//! (640×480 camera, whole sphere, image-span distance, truncation, scale augmentation,
+//! occluder, sensor model) at the `cpu` preset's M = 384 / N = 288.
 //!
 //! Objects are procedural and preloaded (model points cached) before timing: the numbers are
-//! the steady state of a training run, where every object has been seen.
+//! the steady state of a training run, where every object has been seen. The protocol group
+//! uses real objects instead when `INCONTEXT_REAL_OBJECTS` names the real-object folder.
 
 use std::sync::Arc;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use ic_data::{
-    Corpus, CorpusOptions, ObjectSampleConfig, ObjectSampleGenerator, Prefetcher, RoomSampleConfig,
-    RoomSampleGenerator, Split,
+    Corpus, CorpusOptions, FolderSplit, ObjectSampleConfig, ObjectSampleGenerator, Prefetcher,
+    RoomSampleConfig, RoomSampleGenerator, SamplingProtocol, Split,
 };
 
 fn corpus() -> Arc<Corpus> {
@@ -70,5 +74,58 @@ fn room(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, object_alone, room);
+/// The training corpus of the protocol benchmarks: 16 real objects when
+/// `INCONTEXT_REAL_OBJECTS` points at the folder (with its `split.json`), else procedural.
+fn training_corpus() -> Arc<Corpus> {
+    let Some(dir) = std::env::var_os("INCONTEXT_REAL_OBJECTS") else {
+        return corpus();
+    };
+    let dir = std::path::PathBuf::from(dir);
+    let how = FolderSplit::File(dir.join("split.json"));
+    let all = Corpus::mesh_folder(&dir, &how, Split::Train, CorpusOptions::default())
+        .expect("real objects");
+    let first: Vec<String> = all
+        .entries()
+        .iter()
+        .take(16)
+        .map(|e| e.id.clone())
+        .collect();
+    let tmp = std::env::temp_dir().join("ic_bench_real_split.json");
+    std::fs::write(&tmp, serde_json::json!({ "train": first }).to_string()).expect("split file");
+    let c = Corpus::mesh_folder(
+        &dir,
+        &FolderSplit::File(tmp),
+        Split::Train,
+        CorpusOptions::default(),
+    )
+    .expect("real objects");
+    c.preload().expect("preload");
+    Arc::new(c)
+}
+
+fn protocols(c: &mut Criterion) {
+    let objects = training_corpus();
+    let mut group = c.benchmark_group("data_protocol_cpu_preset");
+    group.sample_size(20);
+    group.throughput(Throughput::Elements(1));
+    for protocol in [SamplingProtocol::Paper, SamplingProtocol::Deployment] {
+        let cfg = ObjectSampleConfig {
+            model_points: 384,
+            observed_points: 288,
+            ..protocol.config()
+        };
+        let g = ObjectSampleGenerator::new(objects.clone(), cfg, 7).expect("generator");
+        // Many different samples per measurement: deployment samples vary a lot in size.
+        let mut i = 0;
+        group.bench_function(format!("one_sample_{protocol}"), |b| {
+            b.iter(|| {
+                i += 1;
+                g.sample(i).expect("sample")
+            })
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, object_alone, room, protocols);
 criterion_main!(benches);

@@ -15,10 +15,13 @@
 //! - `cargo xtask export-cases --set <noback|room> …` writes registration cases (`source.ply`,
 //!   `target.ply`, `gt.json`, `meta.json`; room cases also `depth.png`, `camera.json`).
 //!
-//! - `cargo xtask train-pose --preset cpu|paper --head softmax|ot --objects DIR --out DIR …`
-//!   trains the pose network on samples rendered on the fly (resumable, Ctrl-C saves).
-//! - `cargo xtask eval-pose --model FILE --objects DIR …` measures a checkpoint on the test
-//!   split (rotation/translation accuracies, JSON report).
+//! - `cargo xtask train-pose --preset cpu|paper --head softmax|ot --objects DIR|MIXTURE --out DIR
+//!   [--protocol paper|deployment] [--init WEIGHTS] …` trains the pose network on samples
+//!   rendered on the fly (resumable, Ctrl-C saves; validation on the `val` objects with the
+//!   same protocol). MIXTURE: `NAME=DIR:WEIGHT,…,procedural:WEIGHT`.
+//! - `cargo xtask eval-pose --model FILE --objects DIR|MIXTURE [--split test|val|train]
+//!   [--protocol paper|deployment] …` measures a checkpoint (rotation/translation accuracies,
+//!   ADD-S, JSON report).
 //!
 //! - `cargo xtask train-seg --objects DIR --out DIR …` trains the instance-mask network on
 //!   room scenes rendered on the fly (resumable, Ctrl-C saves).

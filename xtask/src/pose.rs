@@ -1,9 +1,13 @@
 //! `cargo xtask train-pose` and `cargo xtask eval-pose`: training and evaluation of the
 //! `ic_pose` network on object-alone samples rendered on the fly by `ic_data`.
 //!
-//! Training objects: ids 000–749 of the folder (`--objects`, the blob layout); objects
-//! 750–799 form the fixed validation set used to pick the best checkpoint; 800–999 (the test
-//! split) are left untouched for `eval-pose`.
+//! Objects (`--objects`): one folder or a weighted mixture of folders and procedural objects
+//! (see [`crate::data::ObjectsSpec`]). A folder with `split.json` uses its `train`/`val`/`test`
+//! lists; a folder of numeric stems (the blobs) uses 000–749 train, 750–799 val (the fixed
+//! validation set that picks the best checkpoint), 800–999 test (left untouched for
+//! `eval-pose`). `--protocol paper` (default) samples as the paper; `--protocol deployment`
+//! as deployment (`ic_data::ObjectSampleConfig::deployment`); validation uses the same
+//! protocol on the `val` objects.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -11,11 +15,12 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
+use crate::data::ObjectsSpec;
 use crate::run;
 use anyhow::{Context, Result, bail};
 use ic_data::{
-    Corpus, CorpusOptions, FolderSplit, ObjectSample, ObjectSampleConfig, ObjectSampleGenerator,
-    Prefetcher, Split,
+    CorpusOptions, ObjectSample, ObjectSampleConfig, ObjectSampleGenerator, Prefetcher,
+    SamplingProtocol, Split,
 };
 use ic_pose::{Head, PoseConfig, PoseEstimator, Refine, Trainer};
 use indicatif::ProgressBar;
@@ -26,14 +31,25 @@ const VALIDATION_SEED: u64 = 0x7661_6c69;
 #[derive(clap::Args)]
 pub struct TrainArgs {
     /// `cpu` (≈ 1.5 h on one core) or `paper` (GPU, `cuda` feature); `tiny` for smoke tests.
+    /// Ignored with `--init` (the configuration comes from the checkpoint).
     #[arg(long, default_value = "cpu")]
     preset: String,
-    /// `softmax` or `ot`.
-    #[arg(long, default_value = "softmax")]
-    head: String,
-    /// Folder of meshes with numeric stems (the blob folder: 000–999).
+    /// `softmax` (default) or `ot`; with `--init`, must match the checkpoint's head if given.
     #[arg(long)]
-    objects: PathBuf,
+    head: Option<String>,
+    /// A folder (`split.json`, or numeric stems split as the blobs) or a weighted mixture,
+    /// e.g. `real=../shared/data/objects/real_objects:0.6,blobs=../shared/data/objects/blobs:0.3,procedural:0.1`.
+    #[arg(long)]
+    objects: String,
+    /// `paper` (the paper's sampling; old runs reproduce) or `deployment` (whole sphere, roll,
+    /// 10–100 % image span, truncation, scale augmentation, occluders, sensor model).
+    #[arg(long, default_value = "paper")]
+    protocol: String,
+    /// Start from these weights (e.g. models/pose-cpu-ot.safetensors) and their configuration
+    /// (the preset's overrides still apply; the network must keep its shape). Fresh Adam
+    /// moments, iteration 0. Ignored when `--resume` finds a checkpoint.
+    #[arg(long)]
+    init: Option<PathBuf>,
     /// Output folder: latest.safetensors (resumable), best.safetensors (weights), CSV logs.
     #[arg(long)]
     out: PathBuf,
@@ -78,12 +94,16 @@ pub struct EvalArgs {
     /// A checkpoint (weights-only or training).
     #[arg(long)]
     model: PathBuf,
+    /// As for train-pose: a folder or a weighted mixture.
     #[arg(long)]
-    objects: PathBuf,
-    /// `test` (ids 800–999), `val` (750–799, the validation objects held out of training) or
-    /// `train` (000–749).
+    objects: String,
+    /// `test` (blobs: ids 800–999), `val` (750–799, the validation objects held out of
+    /// training) or `train` (000–749); folders with `split.json` use its lists.
     #[arg(long, default_value = "test")]
     split: String,
+    /// `paper` or `deployment` (as for train-pose).
+    #[arg(long, default_value = "paper")]
+    protocol: String,
     #[arg(long, default_value_t = 500)]
     count: u64,
     #[arg(long, default_value_t = 2021)]
@@ -132,23 +152,28 @@ pub(crate) fn set_threads(threads: Option<usize>) {
     }
 }
 
-fn blob_split(validation: bool) -> FolderSplit {
-    if validation {
-        FolderSplit::IdRange {
-            train: (0, 749),
-            test: (750, 799),
-        }
-    } else {
-        FolderSplit::blobs()
-    }
-}
-
-fn sample_config(cfg: &PoseConfig) -> ObjectSampleConfig {
+fn sample_config(cfg: &PoseConfig, protocol: SamplingProtocol) -> ObjectSampleConfig {
     ObjectSampleConfig {
         model_points: cfg.train.model_points,
         observed_points: cfg.train.observed_points,
-        ..ObjectSampleConfig::default()
+        ..protocol.config()
     }
+}
+
+/// The objects of `split` under `spec`, with a line saying what they are.
+fn open_objects(spec: &ObjectsSpec, split: Split) -> Result<Arc<ic_data::Corpus>> {
+    let corpus = spec.corpus(split, CorpusOptions::default())?;
+    let sources = corpus.sources();
+    if sources.is_empty() {
+        eprintln!("{split} objects: {}", corpus.len());
+    } else {
+        let parts: Vec<String> = sources
+            .iter()
+            .map(|s| format!("{} {} (p {:.3})", s.name, s.objects, s.probability))
+            .collect();
+        eprintln!("{split} objects: {} = {}", corpus.len(), parts.join(" + "));
+    }
+    Ok(Arc::new(corpus))
 }
 
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -169,6 +194,13 @@ pub struct Metrics {
     pub translation_acc_1e2: f64,
     /// Arg-max correspondence accuracy over matched observed points.
     pub correspondence_accuracy: f64,
+    /// Median ADD-S (normalised units: mean distance of the model points moved by the
+    /// estimate to the closest model point moved by the truth).
+    pub add_s_median: f64,
+    /// Fraction with ADD-S below 0.1 × the model's diameter (the usual ADD-S accuracy).
+    pub add_s_acc_01d: f64,
+    /// Median observed voxels per sample (before drawing N).
+    pub observed_voxels_median: f64,
     pub seconds_per_case: f64,
 }
 
@@ -180,10 +212,13 @@ fn evaluate<'a>(
 ) -> Result<Metrics> {
     let clock = Instant::now();
     let (mut rot, mut trans) = (Vec::<f64>::new(), Vec::<f64>::new());
+    let (mut add_s, mut add_s_rel, mut voxels) = (Vec::new(), Vec::new(), Vec::new());
     let (mut right, mut total) = (0usize, 0usize);
     let mut failures = 0;
     for (i, s) in samples.enumerate() {
         let s = s?;
+        voxels.push(s.observed_voxels as f64);
+        let diameter = ic_eval::diameter(&s.model_points);
         let out = estimator.infer(&s.model_points, &s.observed_points)?;
         let matches = out.matches()?.remove(0);
         if let Some(acc) =
@@ -202,12 +237,17 @@ fn evaluate<'a>(
             Ok(r) => {
                 rot.push(ic_eval::rotation_error_deg(&r.pose, &s.pose));
                 trans.push(ic_eval::translation_error_sq(&r.pose, &s.pose));
+                let a = ic_eval::add_s(&r.pose, &s.pose, &s.model_points)?;
+                add_s.push(a);
+                add_s_rel.push(a / diameter.max(1e-12));
             }
             Err(e) => {
                 tracing::debug!("sample {}: {e}", s.index);
                 failures += 1;
                 rot.push(180.0);
                 trans.push(f64::INFINITY);
+                add_s.push(f64::INFINITY);
+                add_s_rel.push(f64::INFINITY);
             }
         }
         progress(i + 1);
@@ -225,6 +265,9 @@ fn evaluate<'a>(
         translation_acc_5e3: frac(&trans, 5e-3),
         translation_acc_1e2: frac(&trans, 1e-2),
         correspondence_accuracy: right as f64 / total.max(1) as f64,
+        add_s_median: ic_eval::median(&add_s),
+        add_s_acc_01d: frac(&add_s_rel, 0.1),
+        observed_voxels_median: ic_eval::median(&voxels),
         seconds_per_case: clock.elapsed().as_secs_f64() / n.max(1) as f64,
         ..Default::default()
     };
@@ -298,17 +341,23 @@ pub(crate) fn open_csv(
 pub fn train(args: TrainArgs) -> Result<()> {
     set_threads(args.threads);
     install_signal_handlers();
+    let protocol: SamplingProtocol = args.protocol.parse()?;
+    let objects: ObjectsSpec = args.objects.parse()?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let latest = args.out.join("latest.safetensors");
     let best_path = args.out.join("best.safetensors");
-    let mut trainer = if args.resume && latest.exists() {
+    let resuming = args.resume && latest.exists();
+    let mut trainer = if resuming {
         let mut t = Trainer::resume(&latest)?;
         eprintln!(
             "resuming {} at iteration {}",
             latest.display(),
             t.iteration()
         );
+        if args.init.is_some() {
+            eprintln!("--init ignored: resuming the run's own checkpoint");
+        }
         if let Some(it) = args.iterations {
             t.set_iterations(it);
         }
@@ -321,10 +370,39 @@ pub fn train(args: TrainArgs) -> Result<()> {
         if args.resume {
             eprintln!("--resume: no {} yet, starting fresh", latest.display());
         }
-        let head: Head = args.head.parse()?;
-        let mut cfg = PoseConfig::preset(&args.preset, head)?;
-        apply_overrides(&mut cfg, &args);
-        Trainer::new(cfg, args.seed)?
+        match &args.init {
+            Some(init) => {
+                let mut cfg = ic_pose::checkpoint::read_config(init)
+                    .with_context(|| format!("--init {}", init.display()))?;
+                if let Some(h) = &args.head {
+                    let head: Head = h.parse()?;
+                    if head != cfg.net.head {
+                        bail!(
+                            "--head {h}: {} has the {} head",
+                            init.display(),
+                            cfg.net.head.as_str()
+                        );
+                    }
+                }
+                apply_overrides(&mut cfg, &args);
+                let mut t = Trainer::new(cfg, args.seed)?;
+                t.load_weights(init)
+                    .with_context(|| format!("--init {}", init.display()))?;
+                eprintln!(
+                    "initialised from {} (preset {:?}, head {}); fresh optimiser at iteration 0",
+                    init.display(),
+                    t.config().preset,
+                    t.config().net.head.as_str()
+                );
+                t
+            }
+            None => {
+                let head: Head = args.head.as_deref().unwrap_or("softmax").parse()?;
+                let mut cfg = PoseConfig::preset(&args.preset, head)?;
+                apply_overrides(&mut cfg, &args);
+                Trainer::new(cfg, args.seed)?
+            }
+        }
     };
     let cfg = trainer.config().clone();
     let seed = trainer.seed();
@@ -336,25 +414,18 @@ pub fn train(args: TrainArgs) -> Result<()> {
         args.data_workers
     );
 
-    let options = CorpusOptions::default();
-    let train_corpus = Arc::new(Corpus::mesh_folder(
-        &args.objects,
-        &blob_split(true),
-        Split::Train,
-        options,
-    )?);
-    let val_corpus = Arc::new(Corpus::mesh_folder(
-        &args.objects,
-        &blob_split(true),
-        Split::Test,
-        options,
-    )?);
-    eprintln!(
-        "objects: {} train, {} validation (held out of the train split)",
-        train_corpus.len(),
-        val_corpus.len()
-    );
-    let scfg = sample_config(&cfg);
+    let train_corpus = open_objects(&objects, Split::Train)?;
+    let val_corpus = open_objects(&objects, Split::Val)?;
+    let scfg = sample_config(&cfg, protocol);
+    let data = serde_json::json!({
+        "protocol": protocol.as_str(),
+        "objects": objects.describe(),
+        "init": args.init,
+        "sample": scfg,
+        "validation_seed": VALIDATION_SEED,
+    });
+    eprintln!("data {}", serde_json::to_string(&data)?);
+    check_data_record(&args.out.join("data.json"), &data, resuming)?;
     let generator = Arc::new(ObjectSampleGenerator::new(
         train_corpus,
         scfg.clone(),
@@ -379,7 +450,7 @@ pub fn train(args: TrainArgs) -> Result<()> {
     )?;
     let mut val_csv = open_csv(
         &args.out.join("val.csv"),
-        "iteration,rotation_median_deg,rotation_acc_5,rotation_acc_10,rotation_acc_15,translation_sq_median,translation_acc_1e2,correspondence_accuracy,elapsed_s",
+        "iteration,rotation_median_deg,rotation_acc_5,rotation_acc_10,rotation_acc_15,translation_sq_median,translation_acc_1e2,correspondence_accuracy,elapsed_s,add_s_acc_01d",
         args.resume.then_some(start),
     )?;
     let best_json = args.out.join("best.json");
@@ -438,22 +509,24 @@ pub fn train(args: TrainArgs) -> Result<()> {
             let m = evaluate(&est, val_set.iter().cloned().map(Ok), |_| {})?;
             writeln!(
                 val_csv,
-                "{done},{:.3},{:.4},{:.4},{:.4},{:.6},{:.4},{:.4},{elapsed:.1}",
+                "{done},{:.3},{:.4},{:.4},{:.4},{:.6},{:.4},{:.4},{elapsed:.1},{:.4}",
                 m.rotation_median_deg,
                 m.rotation_acc_5,
                 m.rotation_acc_10,
                 m.rotation_acc_15,
                 m.translation_sq_median,
                 m.translation_acc_1e2,
-                m.correspondence_accuracy
+                m.correspondence_accuracy,
+                m.add_s_acc_01d
             )?;
             let score = m.rotation_acc_15 - 1e-4 * m.rotation_median_deg;
             let line = format!(
-                "iteration {done}: validation rot median {:.2}°, acc@5/10/15 {:.3}/{:.3}/{:.3}, corr acc {:.3}",
+                "iteration {done}: validation rot median {:.2}°, acc@5/10/15 {:.3}/{:.3}/{:.3}, ADD-S<0.1d {:.3}, corr acc {:.3}",
                 m.rotation_median_deg,
                 m.rotation_acc_5,
                 m.rotation_acc_10,
                 m.rotation_acc_15,
+                m.add_s_acc_01d,
                 m.correspondence_accuracy
             );
             run::report(&bar, line);
@@ -485,23 +558,48 @@ pub fn train(args: TrainArgs) -> Result<()> {
     Ok(())
 }
 
+/// Writes `path` (the run's data: protocol, objects, sample configuration) for a fresh run;
+/// when resuming, warns if the data now differ from the record (the run then no longer
+/// matches an uninterrupted one) and keeps the record.
+fn check_data_record(path: &Path, data: &serde_json::Value, resuming: bool) -> Result<()> {
+    if resuming && let Ok(text) = std::fs::read_to_string(path) {
+        let old: serde_json::Value =
+            serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+        // `init` only matters for a fresh start.
+        let strip = |v: &serde_json::Value| {
+            let mut v = v.clone();
+            if let Some(o) = v.as_object_mut() {
+                o.remove("init");
+            }
+            v
+        };
+        if strip(&old) != strip(data) {
+            eprintln!(
+                "WARNING: the data differ from {} (protocol, objects or sample settings): the resumed run is not the uninterrupted one",
+                path.display()
+            );
+        }
+        return Ok(());
+    }
+    std::fs::write(path, serde_json::to_string_pretty(data)?)
+        .with_context(|| format!("writing {}", path.display()))
+}
+
 /// Seed of the sample stream used to recalibrate batch norm (training split).
 const RECALIBRATION_SEED: u64 = 0x0062_726e;
 
 pub fn eval(args: EvalArgs) -> Result<()> {
     set_threads(args.threads);
+    let protocol: SamplingProtocol = args.protocol.parse()?;
+    let objects: ObjectsSpec = args.objects.parse()?;
+    let split: Split = args.split.parse()?;
     let mut est = if args.recalibrate_bn > 0 {
         let cfg = ic_pose::checkpoint::read_config(&args.model)?;
         let mut trainer = Trainer::new(cfg.clone(), 0)?;
         trainer.load_weights(&args.model)?;
-        let corpus = Arc::new(Corpus::mesh_folder(
-            &args.objects,
-            &blob_split(true),
-            Split::Train,
-            CorpusOptions::default(),
-        )?);
+        let corpus = open_objects(&objects, Split::Train)?;
         let generator =
-            ObjectSampleGenerator::new(corpus, sample_config(&cfg), RECALIBRATION_SEED)?;
+            ObjectSampleGenerator::new(corpus, sample_config(&cfg, protocol), RECALIBRATION_SEED)?;
         let b = cfg.train.batch_size;
         let batches: Vec<Vec<ObjectSample>> = (0..args.recalibrate_bn as u64)
             .map(|k| {
@@ -536,22 +634,11 @@ pub fn eval(args: EvalArgs) -> Result<()> {
     if args.unweighted {
         est.recovery.weighted = false;
     }
-    let (split, holdout) = match args.split.as_str() {
-        "test" => (Split::Test, false),
-        "val" => (Split::Test, true),
-        "train" => (Split::Train, true),
-        other => bail!("--split {other:?}: expected test, val or train"),
-    };
     let cfg = est.config().clone();
-    let corpus = Arc::new(Corpus::mesh_folder(
-        &args.objects,
-        &blob_split(holdout),
-        split,
-        CorpusOptions::default(),
-    )?);
+    let corpus = open_objects(&objects, split)?;
     let generator = Arc::new(ObjectSampleGenerator::new(
         corpus,
-        sample_config(&cfg),
+        sample_config(&cfg, protocol),
         args.seed,
     )?);
     let samples = Prefetcher::new(0, Some(args.count), 1, 8, move |i| generator.sample(i))
@@ -566,7 +653,9 @@ pub fn eval(args: EvalArgs) -> Result<()> {
     bar.finish_and_clear();
     let report = serde_json::json!({
         "model": args.model,
-        "split": args.split,
+        "split": split.as_str(),
+        "protocol": protocol.as_str(),
+        "objects": objects.describe(),
         "seed": args.seed,
         "refine": args.refine,
         "recovery": est.recovery,
@@ -576,8 +665,12 @@ pub fn eval(args: EvalArgs) -> Result<()> {
     let text = serde_json::to_string_pretty(&report)?;
     println!("{text}");
     let out = args.out.unwrap_or_else(|| {
+        // The paper protocol keeps the old names.
         let mut p = args.model.clone().into_os_string();
-        p.push(format!(".eval-{}-{}.json", args.split, args.refine));
+        match protocol {
+            SamplingProtocol::Paper => p.push(format!(".eval-{split}-{}.json", args.refine)),
+            _ => p.push(format!(".eval-{protocol}-{split}-{}.json", args.refine)),
+        }
         PathBuf::from(p)
     });
     std::fs::write(&out, text).with_context(|| format!("writing {}", out.display()))?;

@@ -88,8 +88,12 @@ impl RoomSample {
 }
 
 impl ObjectSample {
-    /// This sample as a BOP frame; `None` unless it was generated with `keep_images`.
+    /// This sample as a BOP frame; `None` unless it was generated with `keep_images`, and
+    /// when its model was scale-augmented (the corpus object is not the model it shows).
     pub fn bop_frame<'a>(&'a self, object: &'a CorpusObject) -> Option<BopFrame<'a>> {
+        if self.model_scale != glam::Vec3::ONE {
+            return None;
+        }
         let (depth, mask) = (self.depth.as_ref()?, self.mask.as_ref()?);
         Some(BopFrame {
             intrinsics: self.intrinsics,

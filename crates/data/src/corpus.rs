@@ -1,5 +1,6 @@
 //! Object corpora and their splits: a ModelNet40 folder, a flat folder of meshes, a BOP
-//! `models/` folder, or the procedural stream of `ic_geometry::shapes::random_object`.
+//! `models/` folder, the procedural stream of `ic_geometry::shapes::random_object`, or a
+//! weighted mixture of these ([`Corpus::mixture`]).
 //!
 //! A [`Corpus`] only lists objects when it is built; each mesh is loaded, normalised into
 //! [-1, 1] (the [`Normalisation`] is kept) and its visible-surface model points are sampled the
@@ -25,12 +26,14 @@ use serde::{Deserialize, Serialize};
 use crate::DataError;
 use crate::seed::mix;
 
-/// Training or test objects (the paper uses disjoint objects for the two).
+/// Training, validation or test objects (disjoint sets of objects: the paper uses disjoint
+/// training and test objects; validation objects select checkpoints and are never trained on).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Split {
     Train,
     Test,
+    Val,
 }
 
 impl Split {
@@ -38,6 +41,7 @@ impl Split {
         match self {
             Split::Train => "train",
             Split::Test => "test",
+            Split::Val => "val",
         }
     }
 }
@@ -54,22 +58,32 @@ impl std::str::FromStr for Split {
         match s {
             "train" => Ok(Split::Train),
             "test" => Ok(Split::Test),
+            "val" | "validation" => Ok(Split::Val),
             _ => Err(DataError::Config {
                 field: "split",
-                message: format!("expected train or test, got {s:?}"),
+                message: format!("expected train, val or test, got {s:?}"),
             }),
         }
     }
 }
 
-/// How a flat folder of meshes is split into train and test objects.
+/// How a flat folder of meshes is split into train, validation and test objects.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum FolderSplit {
     /// Ids are the numeric file stems (`000.obj` → 0); inclusive ranges per split. The blob
-    /// folder of the project uses train 0–799, test 800–999 ([`FolderSplit::blobs`]).
+    /// folder of the project uses train 0–799, test 800–999 ([`FolderSplit::blobs`]). There
+    /// is no validation range: [`Split::Val`] is an error (use [`FolderSplit::IdRanges`]).
     IdRange { train: (u64, u64), test: (u64, u64) },
-    /// A JSON file `{"train": ["000", …], "test": ["800", …]}` listing file stems.
+    /// Inclusive id ranges for all three splits ([`FolderSplit::blobs_with_val`]).
+    IdRanges {
+        train: (u64, u64),
+        val: (u64, u64),
+        test: (u64, u64),
+    },
+    /// A JSON file `{"train": ["000", …], "val": [...], "test": ["800", …]}` listing file
+    /// stems (strings or numbers). `val` is needed only to load the validation split. The
+    /// lists present must be disjoint (checked whenever a split is loaded).
     File(PathBuf),
 }
 
@@ -81,6 +95,79 @@ impl FolderSplit {
             test: (800, 999),
         }
     }
+
+    /// The blob folder with validation objects carved out of the train range, as every pose
+    /// and segmentation model of the project was trained: 000–749 train, 750–799 val,
+    /// 800–999 test (the test split of [`FolderSplit::blobs`], unchanged).
+    pub fn blobs_with_val() -> Self {
+        FolderSplit::IdRanges {
+            train: (0, 749),
+            val: (750, 799),
+            test: (800, 999),
+        }
+    }
+}
+
+/// The stems listed for `split` in a split file, after checking that the lists present are
+/// disjoint.
+fn split_file_ids(
+    path: &Path,
+    split: Split,
+) -> Result<std::collections::HashSet<String>, DataError> {
+    // A split file lists at most a few hundred thousand stems; 64 MiB bounds a wrong path.
+    let bytes = ic_geometry::io::read_bounded(path, 64 << 20).map_err(DataError::io(path))?;
+    let json: serde_json::Value =
+        serde_json::from_slice(&bytes).map_err(|e| DataError::json(path, e))?;
+    let read = |name: &str| -> Result<Option<Vec<String>>, DataError> {
+        let Some(v) = json.get(name) else {
+            return Ok(None);
+        };
+        let list = v.as_array().ok_or_else(|| {
+            DataError::json(path, format!("{name:?} is not a list of file stems"))
+        })?;
+        let mut out = Vec::with_capacity(list.len());
+        for (i, v) in list.iter().enumerate() {
+            out.push(match v {
+                serde_json::Value::String(s) => s.clone(),
+                serde_json::Value::Number(n) => n.to_string(),
+                _ => {
+                    return Err(DataError::json(
+                        path,
+                        format!("{name}[{i}] is not a string or number"),
+                    ));
+                }
+            });
+        }
+        Ok(Some(out))
+    };
+    let mut seen: HashMap<String, &'static str> = HashMap::new();
+    let mut wanted = None;
+    for other in [Split::Train, Split::Val, Split::Test] {
+        let Some(list) = read(other.as_str())? else {
+            continue;
+        };
+        for id in &list {
+            // Numeric stems compare as numbers ("007" and 7 are the same object).
+            let key = id
+                .parse::<u64>()
+                .map_or_else(|_| id.clone(), |n| n.to_string());
+            if let Some(first) = seen.insert(key, other.as_str())
+                && first != other.as_str()
+            {
+                return Err(DataError::json(
+                    path,
+                    format!("{id:?} is listed in both {first} and {other}"),
+                ));
+            }
+        }
+        if other == split {
+            wanted = Some(list);
+        }
+    }
+    let list = wanted.ok_or_else(|| {
+        DataError::json(path, format!("no {:?} list of file stems", split.as_str()))
+    })?;
+    Ok(list.into_iter().collect())
 }
 
 /// What to do with a mesh that cannot be loaded or is unusable.
@@ -124,12 +211,31 @@ pub enum ObjectSource {
 }
 
 /// One listed object: its id (file stem, `class/stem` for ModelNet, `obj_000001` for BOP,
-/// `proc_<seed>` for procedural objects), its source and, for BOP models, its BOP `obj_id`.
+/// `proc_<seed>` for procedural objects, `<source>/<id>` in a mixture), its source and, for
+/// BOP models, its BOP `obj_id`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ObjectEntry {
     pub id: String,
     pub source: ObjectSource,
     pub bop_obj_id: Option<u32>,
+    /// Seed of the object's model-point sampling: a function of the object's id in its own
+    /// corpus (kept when the object joins a mixture, so its points do not change).
+    pub model_seed: u64,
+}
+
+impl ObjectEntry {
+    fn new(id: String, source: ObjectSource, bop_obj_id: Option<u32>) -> Self {
+        let model_seed = match &source {
+            ObjectSource::File(_) => mix(0x006d_6f64_656c, fnv1a(id.as_bytes())),
+            ObjectSource::Procedural(s) => mix(*s, 1),
+        };
+        ObjectEntry {
+            id,
+            source,
+            bop_obj_id,
+            model_seed,
+        }
+    }
 }
 
 /// A loaded, normalised object with its cached model points.
@@ -156,6 +262,7 @@ pub enum CorpusKind {
     MeshFolder,
     BopModels,
     Procedural,
+    Mixture,
 }
 
 /// A serialisable description of a corpus (for manifests).
@@ -166,6 +273,38 @@ pub struct CorpusInfo {
     pub split: Split,
     pub objects: usize,
     pub skipped: usize,
+    /// The sources of a mixture (empty otherwise).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sources: Vec<SourceInfo>,
+}
+
+/// One source of a mixture corpus, for manifests.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SourceInfo {
+    pub name: String,
+    pub kind: CorpusKind,
+    pub folder: Option<PathBuf>,
+    /// Probability of drawing from this source (the weights given, normalised to sum 1).
+    pub probability: f64,
+    pub objects: usize,
+}
+
+/// One source of [`Corpus::mixture`]: a corpus, its name (the prefix of its objects' ids) and
+/// its weight (any positive number; weights are normalised).
+#[derive(Debug)]
+pub struct MixturePart {
+    pub name: String,
+    pub corpus: Corpus,
+    pub weight: f64,
+}
+
+/// The entries `range` of a mixture corpus that came from one source.
+#[derive(Clone, Debug)]
+struct Group {
+    info: SourceInfo,
+    range: std::ops::Range<usize>,
+    /// Cumulative probability up to and including this group.
+    cumulative: f64,
 }
 
 type Slot = Arc<OnceLock<Result<Arc<CorpusObject>, (PathBuf, String)>>>;
@@ -179,6 +318,8 @@ pub struct Corpus {
     options: CorpusOptions,
     cache: Mutex<HashMap<usize, Slot>>,
     skipped: AtomicUsize,
+    /// Mixture sources (empty for a single-source corpus).
+    groups: Vec<Group>,
 }
 
 impl fmt::Debug for Corpus {
@@ -231,6 +372,7 @@ impl Corpus {
             options,
             cache: Mutex::new(HashMap::new()),
             skipped: AtomicUsize::new(0),
+            groups: Vec::new(),
         })
     }
 
@@ -262,11 +404,11 @@ impl Corpus {
                         .file_stem()
                         .map(|s| s.to_string_lossy().into_owned())
                         .unwrap_or_default();
-                    entries.push(ObjectEntry {
-                        id: format!("{class}/{stem}"),
-                        source: ObjectSource::File(file),
-                        bop_obj_id: None,
-                    });
+                    entries.push(ObjectEntry::new(
+                        format!("{class}/{stem}"),
+                        ObjectSource::File(file),
+                        None,
+                    ));
                 }
             }
         }
@@ -308,33 +450,43 @@ impl Corpus {
         };
         let keep: Box<dyn Fn(&str) -> bool> = match how {
             FolderSplit::IdRange { train, test } => {
-                let (lo, hi) = if split == Split::Train { *train } else { *test };
+                let (lo, hi) = match split {
+                    Split::Train => *train,
+                    Split::Test => *test,
+                    Split::Val => {
+                        return Err(DataError::Config {
+                            field: "split",
+                            message: format!(
+                                "{}: an id-range split without a val range has no validation objects",
+                                dir.display()
+                            ),
+                        });
+                    }
+                };
+                Box::new(move |s: &str| s.parse::<u64>().is_ok_and(|id| (lo..=hi).contains(&id)))
+            }
+            FolderSplit::IdRanges { train, val, test } => {
+                for (a, b, an, bn) in [
+                    (train, val, "train", "val"),
+                    (train, test, "train", "test"),
+                    (val, test, "val", "test"),
+                ] {
+                    if a.0 <= b.1 && b.0 <= a.1 {
+                        return Err(DataError::Config {
+                            field: "split",
+                            message: format!("id ranges {an} {a:?} and {bn} {b:?} overlap"),
+                        });
+                    }
+                }
+                let (lo, hi) = match split {
+                    Split::Train => *train,
+                    Split::Val => *val,
+                    Split::Test => *test,
+                };
                 Box::new(move |s: &str| s.parse::<u64>().is_ok_and(|id| (lo..=hi).contains(&id)))
             }
             FolderSplit::File(path) => {
-                let text = std::fs::read_to_string(path).map_err(DataError::io(path))?;
-                let json: serde_json::Value =
-                    serde_json::from_str(&text).map_err(|e| DataError::json(path, e))?;
-                let list = json
-                    .get(split.as_str())
-                    .and_then(|v| v.as_array())
-                    .ok_or_else(|| {
-                        DataError::json(path, format!("no {:?} list of file stems", split.as_str()))
-                    })?;
-                let mut ids = std::collections::HashSet::new();
-                for (i, v) in list.iter().enumerate() {
-                    let s = match v {
-                        serde_json::Value::String(s) => s.clone(),
-                        serde_json::Value::Number(n) => n.to_string(),
-                        _ => {
-                            return Err(DataError::json(
-                                path,
-                                format!("{}[{i}] is not a string or number", split.as_str()),
-                            ));
-                        }
-                    };
-                    ids.insert(s);
-                }
+                let ids = split_file_ids(path, split)?;
                 Box::new(move |s: &str| {
                     ids.contains(s) || s.parse::<u64>().is_ok_and(|n| ids.contains(&n.to_string()))
                 })
@@ -343,11 +495,7 @@ impl Corpus {
         let entries: Vec<ObjectEntry> = files
             .iter()
             .filter(|p| keep(&stem(p)))
-            .map(|p| ObjectEntry {
-                id: stem(p),
-                source: ObjectSource::File(p.clone()),
-                bop_obj_id: None,
-            })
+            .map(|p| ObjectEntry::new(stem(p), ObjectSource::File(p.clone()), None))
             .collect();
         if entries.is_empty() {
             return Err(DataError::EmptySplit {
@@ -416,10 +564,12 @@ impl Corpus {
         }
         let entries = ids
             .into_iter()
-            .map(|id| ObjectEntry {
-                id: format!("obj_{id:06}"),
-                source: ObjectSource::File(dir.join(format!("obj_{id:06}.ply"))),
-                bop_obj_id: Some(id),
+            .map(|id| {
+                ObjectEntry::new(
+                    format!("obj_{id:06}"),
+                    ObjectSource::File(dir.join(format!("obj_{id:06}.ply"))),
+                    Some(id),
+                )
             })
             .collect();
         Self::from_entries(
@@ -432,7 +582,7 @@ impl Corpus {
     }
 
     /// `count` procedural objects of `split` (`random_object` with seeds derived from `seed`,
-    /// the split and the object number, so train and test objects differ).
+    /// the split and the object number, so train, val and test objects differ).
     pub fn procedural(
         count: usize,
         split: Split,
@@ -445,22 +595,105 @@ impl Corpus {
                 message: "must be ≥ 1".into(),
             });
         }
-        let tag = if split == Split::Train {
-            0x7261_696e
-        } else {
-            0x7465_7374
+        let tag = match split {
+            Split::Train => 0x7261_696e,
+            Split::Test => 0x7465_7374,
+            Split::Val => 0x0076_616c,
         };
         let entries = (0..count)
             .map(|k| {
                 let s = mix(mix(seed, tag), k as u64);
-                ObjectEntry {
-                    id: format!("proc_{s:016x}"),
-                    source: ObjectSource::Procedural(s),
-                    bop_obj_id: None,
-                }
+                ObjectEntry::new(format!("proc_{s:016x}"), ObjectSource::Procedural(s), None)
             })
             .collect();
         Self::from_entries(CorpusKind::Procedural, None, split, entries, options)
+    }
+
+    /// A weighted mixture of corpora of one split: [`Corpus::pick`] first draws a source with
+    /// probability proportional to its weight, then an object of that source uniformly. Ids
+    /// become `<name>/<id>`; an object's mesh and model points are those it has in its own
+    /// corpus. Names must be distinct, non-empty and free of `/`; weights positive and
+    /// finite; the parts must share one split and one [`CorpusOptions`].
+    pub fn mixture(parts: Vec<MixturePart>) -> Result<Self, DataError> {
+        let bad = |message: String| {
+            Err(DataError::Config {
+                field: "mixture",
+                message,
+            })
+        };
+        let Some(first) = parts.first() else {
+            return bad("no source given".into());
+        };
+        let (split, options) = (first.corpus.split, first.corpus.options);
+        let total: f64 = parts.iter().map(|p| p.weight).sum();
+        let mut names = std::collections::HashSet::new();
+        for p in &parts {
+            if p.name.is_empty() || p.name.contains('/') || !names.insert(p.name.as_str()) {
+                return bad(format!(
+                    "source name {:?} is empty, holds '/' or is used twice",
+                    p.name
+                ));
+            }
+            if !(p.weight.is_finite() && p.weight > 0.0) {
+                return bad(format!(
+                    "source {:?}: weight must be positive, got {}",
+                    p.name, p.weight
+                ));
+            }
+            if p.corpus.split != split || p.corpus.options != options {
+                return bad(format!(
+                    "source {:?}: every source must have the same split and options",
+                    p.name
+                ));
+            }
+            if !p.corpus.groups.is_empty() {
+                return bad(format!("source {:?} is itself a mixture", p.name));
+            }
+        }
+        let mut entries = Vec::new();
+        let mut groups = Vec::new();
+        let mut cumulative = 0.0;
+        let count = parts.len();
+        for (k, p) in parts.into_iter().enumerate() {
+            let start = entries.len();
+            let probability = p.weight / total;
+            cumulative = if k + 1 == count {
+                1.0
+            } else {
+                cumulative + probability
+            };
+            groups.push(Group {
+                info: SourceInfo {
+                    name: p.name.clone(),
+                    kind: p.corpus.kind.clone(),
+                    folder: p.corpus.folder.clone(),
+                    probability,
+                    objects: p.corpus.len(),
+                },
+                range: start..start + p.corpus.len(),
+                cumulative,
+            });
+            entries.extend(p.corpus.entries.into_iter().map(|e| ObjectEntry {
+                id: format!("{}/{}", p.name, e.id),
+                ..e
+            }));
+        }
+        let mut corpus = Self::from_entries(CorpusKind::Mixture, None, split, entries, options)?;
+        corpus.groups = groups;
+        Ok(corpus)
+    }
+
+    /// The sources of a mixture (empty for a single-source corpus).
+    pub fn sources(&self) -> Vec<SourceInfo> {
+        self.groups.iter().map(|g| g.info.clone()).collect()
+    }
+
+    /// The mixture source holding entry `index` (`None` for a single-source corpus).
+    pub fn source_of(&self, index: usize) -> Option<&str> {
+        self.groups
+            .iter()
+            .find(|g| g.range.contains(&index))
+            .map(|g| g.info.name.as_str())
     }
 
     pub fn len(&self) -> usize {
@@ -496,6 +729,7 @@ impl Corpus {
             split: self.split,
             objects: self.len(),
             skipped: self.skipped(),
+            sources: self.sources(),
         }
     }
 
@@ -541,25 +775,44 @@ impl Corpus {
     /// drawn under [`OnBadMesh::Skip`]; its error is returned under [`OnBadMesh::Stop`]. The
     /// draws depend only on `rng` and on which objects are unusable, so the result is the same
     /// whether or not the corpus was preloaded.
+    ///
+    /// In a mixture a source is drawn first (one `f64` from `rng`), then an object of that
+    /// source as above; a source whose objects are all unusable is an error.
     pub fn pick<R: Rng + ?Sized>(&self, rng: &mut R) -> Result<Arc<CorpusObject>, DataError> {
-        let n = self.entries.len();
+        let (range, folder) = if self.groups.is_empty() {
+            (0..self.entries.len(), self.folder_display())
+        } else {
+            let u: f64 = rng.random();
+            let g = self
+                .groups
+                .iter()
+                .find(|g| u < g.cumulative)
+                .unwrap_or(&self.groups[self.groups.len() - 1]);
+            let folder = g
+                .info
+                .folder
+                .clone()
+                .unwrap_or_else(|| PathBuf::from(format!("<{}>", g.info.name)));
+            (g.range.clone(), folder)
+        };
+        let (start, n) = (range.start, range.len());
         let mut last = 0;
         for _ in 0..64 {
             let i = rng.random_range(0..n);
             last = i;
-            match self.object(i) {
+            match self.object(start + i) {
                 Ok(o) => return Ok(o),
                 Err(e) if self.options.on_bad_mesh == OnBadMesh::Stop => return Err(e),
                 Err(_) => {}
             }
         }
         for k in 1..n {
-            if let Ok(o) = self.object((last + k) % n) {
+            if let Ok(o) = self.object(start + (last + k) % n) {
                 return Ok(o);
             }
         }
         Err(DataError::NoUsableObject {
-            folder: self.folder_display(),
+            folder,
             split: self.split.to_string(),
             skipped: self.skipped(),
         })
@@ -597,21 +850,17 @@ fn load_object(
     index: usize,
     options: &CorpusOptions,
 ) -> Result<Arc<CorpusObject>, (PathBuf, String)> {
-    let (path, mut mesh, seed) = match &entry.source {
+    // The sampling seed comes from the id, so it does not depend on the load order.
+    let seed = entry.model_seed;
+    let (path, mut mesh) = match &entry.source {
         ObjectSource::File(path) => {
             let mesh =
                 ic_geometry::io::load_mesh(path).map_err(|e| (path.clone(), e.to_string()))?;
-            // The sampling seed comes from the id, so it does not depend on the load order.
-            (
-                path.clone(),
-                mesh,
-                mix(0x006d_6f64_656c, fnv1a(entry.id.as_bytes())),
-            )
+            (path.clone(), mesh)
         }
         ObjectSource::Procedural(s) => (
             PathBuf::from(format!("<procedural {s:#x}>")),
             ic_geometry::shapes::random_object(*s),
-            mix(*s, 1),
         ),
     };
     let normalisation = mesh

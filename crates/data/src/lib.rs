@@ -2,10 +2,12 @@
 //!
 //! - [`Corpus`]: object corpora and splits — a ModelNet40 folder (`<class>/{train,test}/*.off`),
 //!   a flat folder of meshes split by id range or a split file, a BOP `models/` folder, or the
-//!   procedural stream of `ic_geometry::shapes::random_object`. Meshes are loaded once,
+//!   procedural stream of `ic_geometry::shapes::random_object`, or a weighted mixture of
+//!   these ([`Corpus::mixture`]). Meshes are loaded once,
 //!   normalised into [-1, 1] (the `Normalisation` is kept) and their visible-surface model
 //!   points cached.
-//! - [`ObjectSampleGenerator`]: the object alone (X, Y, true pose, ground-truth assignment M̄).
+//! - [`ObjectSampleGenerator`]: the object alone (X, Y, true pose, ground-truth assignment M̄),
+//!   under the paper's protocol or like deployment ([`deploy`], [`SamplingProtocol`]).
 //! - [`RoomSampleGenerator`]: the object in the paper's cube room (640×480 depth, the whole
 //!   scene voxelised, the visible-object mask, pose, boxes, inlier rate).
 //! - [`Prefetcher`]: multi-threaded, bounded, order-preserving prefetching of samples/batches.
@@ -37,6 +39,9 @@
 
 mod assignment;
 mod corpus;
+/// Deployment-like sampling: whole-sphere views, roll, distance by image span, truncation,
+/// scale augmentation, occluders, the sensor model with drawn strengths.
+pub mod deploy;
 mod error;
 mod prefetch;
 mod room;
@@ -50,9 +55,10 @@ pub mod export;
 
 pub use assignment::Assignment;
 pub use corpus::{
-    Corpus, CorpusInfo, CorpusKind, CorpusObject, CorpusOptions, FolderSplit, ObjectEntry,
-    ObjectSource, OnBadMesh, Split,
+    Corpus, CorpusInfo, CorpusKind, CorpusObject, CorpusOptions, FolderSplit, MixturePart,
+    ObjectEntry, ObjectSource, OnBadMesh, SourceInfo, Split,
 };
+pub use deploy::SamplingProtocol;
 pub use error::DataError;
 pub use prefetch::{Batches, Prefetcher};
 pub use room::{

@@ -4,6 +4,12 @@
 //! corpus and the configuration: pick an object of the split, a camera on the view sphere,
 //! render depth, back-project the object's pixels, voxelise, draw M model points and N
 //! observed points, and build the ground-truth assignment.
+//!
+//! With every deployment switch off ([`ObjectSampleConfig::default`], the paper's protocol)
+//! samples are those of the first version, byte for byte. Any switch on (see
+//! [`crate::deploy`] and [`ObjectSampleConfig::deployment`]) selects the deployment path:
+//! whole-sphere views, roll, distances by image span, border truncation, scale augmentation,
+//! occluders and the sensor model, each on its own.
 
 use std::sync::Arc;
 
@@ -18,6 +24,10 @@ use ic_render::{
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::deploy::{
+    CameraDistance, ImagePlacement, OccluderConfig, PhysicalScale, ScaleAugmentation, SensorRanges,
+    ViewSampling,
+};
 use crate::seed::sample_rng;
 use crate::{Assignment, Corpus, DataError};
 
@@ -56,6 +66,28 @@ pub struct ObjectSampleConfig {
     pub max_attempts: usize,
     /// Keep the depth map and object mask in the sample (needed to write BOP datasets).
     pub keep_images: bool,
+
+    // Deployment switches (all off: the paper's protocol; see `crate::deploy`).
+    /// View directions: the paper's ranges of `view`, or the whole sphere.
+    pub viewpoints: ViewSampling,
+    /// A uniform camera roll about the optical axis.
+    pub camera_roll: bool,
+    /// The camera distance: `view.distance`, or by the object's span in the image.
+    pub distance: CameraDistance,
+    /// Where the object projects (`None`: centred, the paper); truncation by the border.
+    pub placement: Option<ImagePlacement>,
+    /// Anisotropic scale of the model (renormalised to [-1, 1]).
+    pub scale_augmentation: Option<ScaleAugmentation>,
+    /// A board or bar hiding part of the object.
+    pub occluder: Option<OccluderConfig>,
+    /// The sensor model with strengths drawn per sample (`None`: ideal depth).
+    pub sensor: Option<SensorRanges>,
+    /// Physical size and distance of the object (used by the sensor model only).
+    pub physical: PhysicalScale,
+    /// 3×3 erosions of the object mask before back-projection (the pipeline: 1).
+    pub mask_erosions: usize,
+    /// Keep observed points within this distance of their centroid (the pipeline: 1.2).
+    pub crop_radius: Option<f32>,
 }
 
 impl Default for ObjectSampleConfig {
@@ -78,11 +110,71 @@ impl Default for ObjectSampleConfig {
             min_observed_voxels: 64,
             max_attempts: 8,
             keep_images: false,
+            viewpoints: ViewSampling::Paper,
+            camera_roll: false,
+            distance: CameraDistance::Fixed,
+            placement: None,
+            scale_augmentation: None,
+            occluder: None,
+            sensor: None,
+            physical: PhysicalScale::default(),
+            mask_erosions: 0,
+            crop_radius: None,
         }
     }
 }
 
 impl ObjectSampleConfig {
+    /// The paper's protocol (the default).
+    pub fn paper() -> Self {
+        ObjectSampleConfig::default()
+    }
+
+    /// Samples like deployment (every switch of [`crate::deploy`] on): a 640×480 Kinect-like
+    /// camera (fx = fy = 525), view directions on the whole sphere, camera roll, any object
+    /// orientation, the object's bounding sphere spanning 10 %–100 % of the image height
+    /// (log-uniform), a quarter of the views free to be cut by the image border, ±20 %
+    /// anisotropic scale, an occluder in 60 % of the views hiding 0–50 % of the object, the
+    /// sensor model with drawn strengths at a physical size of 5–40 cm and 0.4–2 m, the
+    /// pipeline's mask erosion and 1.2-unit crop. Voxel size, M, N, the match threshold and the
+    /// minimum of 64 voxels are the paper's.
+    pub fn deployment() -> Self {
+        ObjectSampleConfig {
+            intrinsics: Intrinsics {
+                fx: 525.0,
+                fy: 525.0,
+                cx: 319.5,
+                cy: 239.5,
+                width: 640,
+                height: 480,
+            },
+            rotation: ObjectRotation::Uniform,
+            viewpoints: ViewSampling::Sphere,
+            camera_roll: true,
+            distance: CameraDistance::ImageSpan { min: 0.1, max: 1.0 },
+            placement: Some(ImagePlacement::default()),
+            scale_augmentation: Some(ScaleAugmentation::default()),
+            occluder: Some(OccluderConfig::default()),
+            sensor: Some(SensorRanges::default()),
+            mask_erosions: 1,
+            crop_radius: Some(1.2),
+            ..ObjectSampleConfig::default()
+        }
+    }
+
+    /// Whether every deployment switch is off (samples follow the paper's path).
+    pub fn is_paper_protocol(&self) -> bool {
+        self.viewpoints == ViewSampling::Paper
+            && !self.camera_roll
+            && self.distance == CameraDistance::Fixed
+            && self.placement.is_none()
+            && self.scale_augmentation.is_none()
+            && self.occluder.is_none()
+            && self.sensor.is_none()
+            && self.mask_erosions == 0
+            && self.crop_radius.is_none()
+    }
+
     /// Checks ranges.
     pub fn validate(&self) -> Result<(), DataError> {
         let bad = |field: &'static str, message: String| Err(DataError::Config { field, message });
@@ -104,7 +196,7 @@ impl ObjectSampleConfig {
         if self.max_attempts == 0 {
             return bad("max_attempts", "must be ≥ 1".into());
         }
-        Ok(())
+        crate::deploy::validate(self)
     }
 
     fn scene_config(&self) -> SceneConfig {
@@ -142,6 +234,18 @@ pub struct ObjectSample {
     /// Depth (normalised units) and object mask, when `keep_images` is set.
     pub depth: Option<DepthImage>,
     pub mask: Option<Mask>,
+    /// Per-axis factors that map the corpus object's normalised mesh and model points to the
+    /// model given to the network (scale augmentation, renormalised; 1 without it).
+    pub model_scale: Vec3,
+    /// Metres per normalised unit at which the sensor model saw the object (deployment path;
+    /// 0 on the paper's path).
+    pub metres_per_unit: f64,
+    /// Fraction of the object's visible pixels hidden by the occluder (0 without one).
+    pub occluded_fraction: f64,
+    /// Whether the object touches the image border.
+    pub truncated: bool,
+    /// The sensor drawn for this sample (`None`: ideal depth).
+    pub sensor: Option<ic_render::SensorConfig>,
 }
 
 impl ObjectSample {
@@ -209,6 +313,89 @@ impl ObjectSampleGenerator {
         renderer: &mut dyn Renderer,
         index: u64,
     ) -> Result<ObjectSample, DataError> {
+        if self.config.is_paper_protocol() {
+            self.sample_paper(renderer, index)
+        } else {
+            self.sample_deployment(renderer, index)
+        }
+    }
+
+    fn sample_deployment(
+        &self,
+        renderer: &mut dyn Renderer,
+        index: u64,
+    ) -> Result<ObjectSample, DataError> {
+        let cfg = &self.config;
+        let mut rng = sample_rng(self.seed, index);
+        let mut last_count = 0;
+        for _ in 0..cfg.max_attempts {
+            let object = self.corpus.pick(&mut rng)?;
+            let view_seed: u64 = rng.random();
+            let view = crate::deploy::render_view(cfg, renderer, &object, view_seed)?;
+            let voxels = if view.points.is_empty() {
+                Vec::new()
+            } else {
+                voxel_downsample_points(&view.points, cfg.voxel_size)?
+            };
+            last_count = voxels.len();
+            if voxels.len() < cfg.min_observed_voxels.max(1) {
+                tracing::debug!(index, object = %object.id, voxels = voxels.len(), "too few observed voxels; redrawing");
+                continue;
+            }
+            let yi = random_subsample_indices(voxels.len(), cfg.observed_points, &mut rng)?;
+            let observed_points: Vec<Vec3> = yi.iter().map(|&i| voxels[i]).collect();
+            let xi =
+                random_subsample_indices(object.model_points.len(), cfg.model_points, &mut rng)?;
+            let model_points: Vec<Vec3> = xi
+                .iter()
+                .map(|&i| object.model_points[i] * view.model_scale)
+                .collect();
+            let assignment = Assignment::from_pose(
+                &model_points,
+                &observed_points,
+                &view.pose,
+                cfg.match_threshold,
+            )?;
+            let (depth, mask) = match view.images {
+                Some((d, m)) => (Some(d), Some(m)),
+                None => (None, None),
+            };
+            return Ok(ObjectSample {
+                index,
+                object_id: object.id.clone(),
+                model_points,
+                observed_points,
+                pose: view.pose,
+                assignment,
+                viewpoint: view.viewpoint,
+                visible_pixels: view.visible_pixels,
+                observed_voxels: voxels.len(),
+                normalisation: object.normalisation,
+                intrinsics: cfg.intrinsics,
+                depth,
+                mask,
+                model_scale: view.model_scale,
+                metres_per_unit: view.metres_per_unit,
+                occluded_fraction: view.occluded_fraction,
+                truncated: view.truncated,
+                sensor: view.sensor,
+            });
+        }
+        Err(DataError::Sample {
+            index,
+            message: format!(
+                "no view with at least {} observed voxels in {} attempts (last: {last_count})",
+                cfg.min_observed_voxels, cfg.max_attempts
+            ),
+        })
+    }
+
+    /// The paper's protocol, exactly as the first version drew it.
+    fn sample_paper(
+        &self,
+        renderer: &mut dyn Renderer,
+        index: u64,
+    ) -> Result<ObjectSample, DataError> {
         let cfg = &self.config;
         let mut rng = sample_rng(self.seed, index);
         let mut last_count = 0;
@@ -258,6 +445,11 @@ impl ObjectSampleGenerator {
                 intrinsics: cfg.intrinsics,
                 depth,
                 mask,
+                model_scale: Vec3::ONE,
+                metres_per_unit: 0.0,
+                occluded_fraction: 0.0,
+                truncated: false,
+                sensor: None,
             });
         }
         Err(DataError::Sample {

@@ -29,6 +29,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         grazing: Some(GrazingDropout::default()),
         flying_pixels: Some(FlyingPixels::default()),
         quantisation: Some(Quantisation::Step { step: 0.001 }),
+        ..SensorConfig::default()
     };
     sensor.apply(&mut view, seed);
     write_debug_png(&out, &view.depth, Some(&view.mask(OBJECT_ID)))?;

@@ -15,7 +15,7 @@
 //! Also here: seeded scene assembly ([`SceneBuilder`]: the object alone, or inside the
 //! paper's cube room of side 4 with bumpy walls, plus distractors and a support plane), sensor
 //! artefacts ([`SensorConfig`]: Kinect-style axial noise, quantisation, grazing-angle dropout,
-//! flying pixels; all off by default), image I/O ([`io`]: 16-bit PNG depth with a BOP depth
+//! flying pixels, lateral jitter, dropout patches; all off by default), image I/O ([`io`]: 16-bit PNG depth with a BOP depth
 //! scale, 32-bit EXR, 8-bit masks, 16-bit instance ids, atomic writes) and a colour-mapped
 //! debug view ([`write_debug_png`]).
 //!
@@ -76,7 +76,10 @@ pub use scene::{
     Background, DISTRACTOR_ID_BASE, DistractorConfig, OBJECT_ID, ObjectRotation, ROOM_ID,
     RoomConfig, SUPPORT_ID, SceneBuilder, SceneConfig, SceneSample, SupportPlaneConfig,
 };
-pub use sensor::{AxialNoise, FlyingPixels, GrazingDropout, Quantisation, SensorConfig};
+pub use sensor::{
+    AxialNoise, DropoutPatches, FlyingPixels, GrazingDropout, LateralJitter, Quantisation,
+    SensorConfig,
+};
 
 /// The wgpu renderer when an adapter exists, else the CPU renderer (the reason is logged with
 /// `tracing`). An invalid `WGPU_BACKEND` is still an error.

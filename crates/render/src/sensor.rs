@@ -1,9 +1,11 @@
 //! Seeded depth-sensor artefacts applied to a clean [`Rendering`]. Every effect is off by
-//! default.
+//! default. Lengths are metres (depth, noise, thresholds) and pixels (jitter, patches): apply
+//! the model to a rendering whose depth is in metres.
 //!
-//! Order: flying pixels (on the clean depth edges), grazing-angle dropout, axial noise,
-//! quantisation. A dropped pixel gets depth 0 (no return) but keeps its instance id, which
-//! stays the ground-truth segmentation of what is in front of the sensor.
+//! Order: lateral jitter (depth, id and incidence move together, so edges move), flying
+//! pixels (on the jittered, otherwise clean depth edges), grazing-angle dropout, dropout
+//! patches, axial noise, quantisation. A dropped pixel gets depth 0 (no return) but keeps its
+//! instance id, which stays the ground-truth segmentation of what is in front of the sensor.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -91,6 +93,41 @@ impl Default for FlyingPixels {
     }
 }
 
+/// Lateral jitter: every pixel shows what its neighbour at a Gaussian offset (σ pixels per
+/// axis, rounded to the nearest pixel, at most 3σ) shows — depth, instance id and incidence
+/// together, so depth edges and silhouettes become ragged as on structured-light sensors.
+/// Offsets that leave the image give no return.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LateralJitter {
+    pub sigma_px: f64,
+}
+
+impl Default for LateralJitter {
+    fn default() -> Self {
+        LateralJitter { sigma_px: 0.5 }
+    }
+}
+
+/// Missing returns in patches (dark, shiny or transparent surfaces): `count` filled ellipses,
+/// each centred on a random pixel with a return, with semi-axes drawn uniformly from
+/// `radius_px` (pixels) and a random orientation.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DropoutPatches {
+    pub count: usize,
+    pub radius_px: (f64, f64),
+}
+
+impl Default for DropoutPatches {
+    fn default() -> Self {
+        DropoutPatches {
+            count: 1,
+            radius_px: (2.0, 10.0),
+        }
+    }
+}
+
 /// Which artefacts to simulate (all `None` = a perfect sensor).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -99,6 +136,8 @@ pub struct SensorConfig {
     pub quantisation: Option<Quantisation>,
     pub grazing: Option<GrazingDropout>,
     pub flying_pixels: Option<FlyingPixels>,
+    pub lateral_jitter: Option<LateralJitter>,
+    pub dropout_patches: Option<DropoutPatches>,
 }
 
 impl SensorConfig {
@@ -108,15 +147,52 @@ impl SensorConfig {
             && self.quantisation.is_none()
             && self.grazing.is_none()
             && self.flying_pixels.is_none()
+            && self.lateral_jitter.is_none()
+            && self.dropout_patches.is_none()
     }
 
-    /// Applies the configured effects in place; deterministic for a given `seed`.
+    /// Applies the configured effects in place; deterministic for a given `seed`. Effects
+    /// that are off draw nothing from the random stream, and the effects of the first
+    /// version (noise, quantisation, grazing, flying pixels) draw exactly as they did.
     pub fn apply(&self, r: &mut Rendering, seed: u64) {
         if self.is_ideal() {
             return;
         }
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let (w, h) = (r.depth.width as usize, r.depth.height as usize);
+        if let Some(j) = self.lateral_jitter
+            && j.sigma_px > 0.0
+            && j.sigma_px.is_finite()
+        {
+            // Its own stream, so switching it on leaves the other effects' draws unchanged.
+            let mut jrng = ChaCha8Rng::seed_from_u64(seed ^ 0x6a69_7474_6572);
+            let limit = (3.0 * j.sigma_px).ceil();
+            let (depth, ids, inc) = (
+                r.depth.data.clone(),
+                r.instances.data.clone(),
+                r.incidence.data.clone(),
+            );
+            for v in 0..h {
+                for u in 0..w {
+                    let mut offset = || {
+                        let e: f64 = StandardNormal.sample(&mut jrng);
+                        (e * j.sigma_px).round().clamp(-limit, limit) as i64
+                    };
+                    let (su, sv) = (u as i64 + offset(), v as i64 + offset());
+                    let i = v * w + u;
+                    if su < 0 || sv < 0 || su >= w as i64 || sv >= h as i64 {
+                        r.depth.data[i] = 0.0;
+                        r.instances.data[i] = 0;
+                        r.incidence.data[i] = 0.0;
+                    } else {
+                        let s = sv as usize * w + su as usize;
+                        r.depth.data[i] = depth[s];
+                        r.instances.data[i] = ids[s];
+                        r.incidence.data[i] = inc[s];
+                    }
+                }
+            }
+        }
         if let Some(f) = self.flying_pixels {
             let clean = r.depth.data.clone();
             for v in 0..h {
@@ -159,6 +235,10 @@ impl SensorConfig {
                 }
             }
         }
+        if let Some(p) = self.dropout_patches {
+            let mut prng = ChaCha8Rng::seed_from_u64(seed ^ 0x7061_7463_6865);
+            drop_patches(r, p, &mut prng);
+        }
         if let Some(n) = self.noise {
             for z in r.depth.data.iter_mut().filter(|z| **z > 0.0) {
                 let e: f64 = StandardNormal.sample(&mut rng);
@@ -183,6 +263,49 @@ impl SensorConfig {
                     }
                 };
                 *z = out as f32;
+            }
+        }
+    }
+}
+
+/// Zeroes the depth inside `p.count` random ellipses centred on pixels with a return.
+fn drop_patches(r: &mut Rendering, p: DropoutPatches, rng: &mut ChaCha8Rng) {
+    let (w, h) = (r.depth.width as usize, r.depth.height as usize);
+    let (lo, hi) = p.radius_px;
+    if !(lo.is_finite() && hi.is_finite() && lo >= 0.0 && hi >= lo) {
+        return;
+    }
+    for _ in 0..p.count {
+        let valid: Vec<usize> = (0..w * h).filter(|&i| r.depth.data[i] > 0.0).collect();
+        if valid.is_empty() {
+            return;
+        }
+        let c = valid[rng.random_range(0..valid.len())];
+        let (cu, cv) = ((c % w) as f64, (c / w) as f64);
+        let mut radius = || {
+            if hi > lo {
+                rng.random_range(lo..=hi)
+            } else {
+                lo
+            }
+        };
+        let (a, b) = (radius().max(0.5), radius().max(0.5));
+        let angle: f64 = rng.random_range(0.0..std::f64::consts::PI);
+        let (cs, sn) = (angle.cos(), angle.sin());
+        let reach = a.max(b).ceil() as i64;
+        for dv in -reach..=reach {
+            for du in -reach..=reach {
+                let (u, v) = (cu as i64 + du, cv as i64 + dv);
+                if u < 0 || v < 0 || u >= w as i64 || v >= h as i64 {
+                    continue;
+                }
+                let (x, y) = (
+                    du as f64 * cs + dv as f64 * sn,
+                    -(du as f64) * sn + dv as f64 * cs,
+                );
+                if (x / a).powi(2) + (y / b).powi(2) <= 1.0 {
+                    r.depth.data[v as usize * w + u as usize] = 0.0;
+                }
             }
         }
     }
@@ -286,5 +409,67 @@ mod tests {
             assert_eq!(r.depth.data[v * 40 + 30], 3.0);
         }
         assert!((0..30).any(|v| r.depth.data[v * 40 + 19] != 1.0));
+    }
+
+    #[test]
+    fn lateral_jitter_moves_edges_and_dropout_patches_remove_returns() {
+        // A step edge in depth and id: left half id 1 at 1 m, right half id 2 at 3 m.
+        let edge = || {
+            let mut r = flat(1.0);
+            for v in 0..30 {
+                for u in 20..40 {
+                    r.depth.data[v * 40 + u] = 3.0;
+                    r.instances.data[v * 40 + u] = 2;
+                }
+            }
+            r
+        };
+        let clean = edge();
+        let jitter = SensorConfig {
+            lateral_jitter: Some(LateralJitter { sigma_px: 1.0 }),
+            ..Default::default()
+        };
+        let mut a = edge();
+        jitter.apply(&mut a, 5);
+        let mut b = edge();
+        jitter.apply(&mut b, 5);
+        assert_eq!(a, b, "seeded");
+        // Depth and id move together: every pixel still pairs 1 m with id 1 and 3 m with id 2
+        // (or lost its return at the image border).
+        for (z, id) in a.depth.data.iter().zip(&a.instances.data) {
+            assert!(
+                (*z == 1.0 && *id == 1) || (*z == 3.0 && *id == 2) || (*z == 0.0 && *id == 0),
+                "{z} {id}"
+            );
+        }
+        // The edge is ragged: some pixels left of it show the far side and vice versa, while
+        // pixels far from the edge (and from the image border, where offsets leave the image)
+        // keep their value.
+        let changed = |u: usize| {
+            (3..27)
+                .filter(|&v| a.depth.data[v * 40 + u] != clean.depth.data[v * 40 + u])
+                .count()
+        };
+        assert!(changed(19) + changed(20) > 10, "edge pixels moved");
+        assert_eq!(changed(10), 0);
+
+        let patches = SensorConfig {
+            dropout_patches: Some(DropoutPatches {
+                count: 2,
+                radius_px: (3.0, 3.0),
+            }),
+            ..Default::default()
+        };
+        let mut r = flat(2.0);
+        patches.apply(&mut r, 9);
+        let dropped = r.depth.data.iter().filter(|&&z| z == 0.0).count();
+        // Two discs of radius 3 (29 pixels each on the grid, possibly overlapping or cut by the
+        // border), ids kept.
+        assert!((10..=58).contains(&dropped), "{dropped} pixels dropped");
+        assert!(r.instances.data.iter().all(|&i| i == 1));
+        // Off: nothing changes.
+        let mut r = flat(2.0);
+        SensorConfig::default().apply(&mut r, 9);
+        assert!(r.depth.data.iter().all(|&z| z == 2.0));
     }
 }
