@@ -88,6 +88,13 @@ pub struct ObjectSampleConfig {
     pub mask_erosions: usize,
     /// Keep observed points within this distance of their centroid (the pipeline: 1.2).
     pub crop_radius: Option<f32>,
+    /// Re-express each view in a rotated copy of the model: 0 = off; 12, 24 or 60 = the
+    /// rotation group (`ic_geometry::rotations`) whose element `G` puts the model → camera
+    /// rotation of the copy `G·X` (the pose becomes `pose·G⁻¹`) nearest the paper's central
+    /// view rotation. The network then learns only the rotations within the group's covering
+    /// radius (≈ 63° for 24) of the family it already knows, and `register --rotations 24`
+    /// registers the same copies at inference and verifies them.
+    pub copy_rotations: usize,
 }
 
 impl Default for ObjectSampleConfig {
@@ -120,6 +127,7 @@ impl Default for ObjectSampleConfig {
             physical: PhysicalScale::default(),
             mask_erosions: 0,
             crop_radius: None,
+            copy_rotations: 0,
         }
     }
 }
@@ -158,6 +166,7 @@ impl ObjectSampleConfig {
             sensor: Some(SensorRanges::default()),
             mask_erosions: 1,
             crop_radius: Some(1.2),
+            copy_rotations: 24,
             ..ObjectSampleConfig::default()
         }
     }
@@ -173,6 +182,7 @@ impl ObjectSampleConfig {
             && self.sensor.is_none()
             && self.mask_erosions == 0
             && self.crop_radius.is_none()
+            && self.copy_rotations == 0
     }
 
     /// Checks ranges.
@@ -261,6 +271,8 @@ pub struct ObjectSampleGenerator {
     config: ObjectSampleConfig,
     seed: u64,
     builder: SceneBuilder,
+    /// The rotation group of `config.copy_rotations` (`None` when 0).
+    copy_group: Option<Vec<ic_geometry::Pose>>,
 }
 
 impl std::fmt::Debug for ObjectSampleGenerator {
@@ -281,11 +293,22 @@ impl ObjectSampleGenerator {
     ) -> Result<Self, DataError> {
         config.validate()?;
         let builder = SceneBuilder::new(config.scene_config())?;
+        let copy_group =
+            match config.copy_rotations {
+                0 => None,
+                n => Some(ic_geometry::rotations::rotation_group(n).map_err(|e| {
+                    DataError::Config {
+                        field: "copy_rotations",
+                        message: e.to_string(),
+                    }
+                })?),
+            };
         Ok(ObjectSampleGenerator {
             corpus,
             config,
             seed,
             builder,
+            copy_group,
         })
     }
 
@@ -346,16 +369,23 @@ impl ObjectSampleGenerator {
             let observed_points: Vec<Vec3> = yi.iter().map(|&i| voxels[i]).collect();
             let xi =
                 random_subsample_indices(object.model_points.len(), cfg.model_points, &mut rng)?;
-            let model_points: Vec<Vec3> = xi
+            let mut model_points: Vec<Vec3> = xi
                 .iter()
                 .map(|&i| object.model_points[i] * view.model_scale)
                 .collect();
-            let assignment = Assignment::from_pose(
-                &model_points,
-                &observed_points,
-                &view.pose,
-                cfg.match_threshold,
-            )?;
+            let mut pose = view.pose;
+            if let Some(group) = &self.copy_group {
+                let (g, _) = ic_geometry::rotations::nearest_in_group(
+                    &pose,
+                    group,
+                    &ic_geometry::rotations::paper_view_rotation(),
+                );
+                let g = group[g];
+                model_points = g.apply_all(&model_points);
+                pose = pose.compose(&g.inverse());
+            }
+            let assignment =
+                Assignment::from_pose(&model_points, &observed_points, &pose, cfg.match_threshold)?;
             let (depth, mask) = match view.images {
                 Some((d, m)) => (Some(d), Some(m)),
                 None => (None, None),
@@ -365,7 +395,7 @@ impl ObjectSampleGenerator {
                 object_id: object.id.clone(),
                 model_points,
                 observed_points,
-                pose: view.pose,
+                pose,
                 assignment,
                 viewpoint: view.viewpoint,
                 visible_pixels: view.visible_pixels,

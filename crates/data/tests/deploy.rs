@@ -47,6 +47,8 @@ fn small_deployment() -> ObjectSampleConfig {
         distance: CameraDistance::ImageSpan { min: 0.3, max: 1.0 },
         model_points: 512,
         observed_points: 384,
+        // The render's own pose (the copies are tested on their own).
+        copy_rotations: 0,
         ..ObjectSampleConfig::deployment()
     }
 }
@@ -659,5 +661,43 @@ fn mixture_draws_sources_in_the_given_proportions_and_is_seeded() {
         ["real/", "blobs/", "proc/"]
             .iter()
             .any(|p| s.object_id.starts_with(p))
+    );
+}
+
+#[test]
+fn copy_rotations_keep_every_view_within_the_groups_radius_of_the_paper_family() {
+    let corpus = corpus(6, Split::Train);
+    let reference = ic_geometry::rotations::paper_view_rotation();
+    let with = generator(
+        corpus.clone(),
+        ObjectSampleConfig {
+            copy_rotations: 24,
+            ..small_deployment()
+        },
+        5,
+    );
+    let without = generator(corpus, small_deployment(), 5);
+    let mut far_without = 0;
+    for i in 0..24 {
+        let a = with.sample(i).unwrap();
+        let b = without.sample(i).unwrap();
+        let angle = |s: &ObjectSample| {
+            Pose::new(s.pose.rotation, DVec3::ZERO)
+                .rotation_angle_to(&reference)
+                .to_degrees()
+        };
+        assert!(angle(&a) < 63.0, "sample {i}: {}°", angle(&a));
+        far_without += (angle(&b) > 63.0) as usize;
+        // The same view: the observed points are untouched, the model points and pose are
+        // re-expressed together, so the pose maps the model onto the view as before.
+        assert_eq!(a.observed_points, b.observed_points);
+        for (p, q) in a.model_points.iter().zip(&b.model_points) {
+            assert!((a.pose.apply_f32(*p) - b.pose.apply_f32(*q)).length() < 1e-4);
+        }
+        assert_eq!(a.assignment, b.assignment);
+    }
+    assert!(
+        far_without > 8,
+        "whole-sphere views are mostly far from the paper family"
     );
 }

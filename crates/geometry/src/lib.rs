@@ -40,6 +40,7 @@ mod procrustes;
 /// Reading and writing meshes and point clouds (OBJ, OFF, PLY, glTF/GLB).
 pub mod io;
 /// Surface sampling: area-weighted uniform and visible-surface.
+pub mod rotations;
 pub mod sampling;
 /// Procedural shapes: primitives and seeded composite objects.
 pub mod shapes;

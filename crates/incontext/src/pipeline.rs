@@ -651,8 +651,10 @@ impl Pipeline {
             let copies: Vec<Vec<Vec3>> = rotations.iter().map(|r| rotate_points(&x, r)).collect();
             seconds.observed_points += t.elapsed().as_secs_f64();
             let t = Instant::now();
-            let pairs: Vec<(&[Vec3], &[Vec3])> =
-                copies.iter().map(|c| (c.as_slice(), y.as_slice())).collect();
+            let pairs: Vec<(&[Vec3], &[Vec3])> = copies
+                .iter()
+                .map(|c| (c.as_slice(), y.as_slice()))
+                .collect();
             let estimates = self.pose.estimator.estimate_batch(&pairs)?;
             seconds.pose_network += t.elapsed().as_secs_f64();
             for (e, r) in estimates.into_iter().zip(&rotations) {

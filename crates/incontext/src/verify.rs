@@ -20,7 +20,7 @@
 
 use std::sync::Arc;
 
-use ic_geometry::glam::{DMat3, DQuat, DVec3, Vec3};
+use ic_geometry::glam::Vec3;
 use ic_geometry::{DepthImage, Image, Intrinsics, Mask, Mesh, Pose};
 use ic_render::{Camera, CpuRenderer, Renderer, Scene};
 use serde::Serialize;
@@ -29,109 +29,17 @@ use serde::Serialize;
 /// around the object (≈ 1–3 ms per render on one core for meshes of a few thousand triangles).
 pub const SCORE_SIDE: u32 = 96;
 
+/// Rotations covering SO(3) evenly: `count` ∈ {1, 12, 24, 60}; see
+/// [`ic_geometry::rotations::rotation_group`].
+pub fn rotation_set(count: usize) -> Result<Vec<Pose>, String> {
+    ic_geometry::rotations::rotation_group(count).map_err(|e| e.to_string())
+}
+
 /// Depth agreement tolerance at camera distance `z` (normalised units): 0.03 (1.5 % of the
 /// object's size) plus 0.5 % of the distance, so that sensor noise, which grows with distance,
 /// does not read as disagreement.
 pub fn depth_tolerance(z: f32) -> f32 {
     0.03 + 0.005 * z
-}
-
-/// Rotations covering SO(3) evenly: `count` ∈ {1, 12, 24, 60} (identity; the rotation groups
-/// of the tetrahedron, the cube and the icosahedron). Row-major rotations as [`Pose`]s with
-/// zero translation; the identity is first.
-pub fn rotation_set(count: usize) -> Result<Vec<Pose>, String> {
-    let quats: Vec<DQuat> = match count {
-        1 => vec![DQuat::IDENTITY],
-        12 => tetrahedral(),
-        24 => octahedral(),
-        60 => icosahedral(),
-        other => {
-            return Err(format!(
-                "{other} rotations: expected 1, 12, 24 or 60 (the rotation groups that cover SO(3) evenly)"
-            ));
-        }
-    };
-    Ok(quats
-        .into_iter()
-        .map(|q| Pose::new(DMat3::from_quat(q.normalize()), DVec3::ZERO))
-        .collect())
-}
-
-/// The 12 rotations of the tetrahedral group: the unit quaternions ±1, ±i, ±j, ±k and
-/// (±1 ± i ± j ± k)/2, up to sign.
-fn tetrahedral() -> Vec<DQuat> {
-    let mut out = vec![
-        DQuat::from_xyzw(0.0, 0.0, 0.0, 1.0),
-        DQuat::from_xyzw(1.0, 0.0, 0.0, 0.0),
-        DQuat::from_xyzw(0.0, 1.0, 0.0, 0.0),
-        DQuat::from_xyzw(0.0, 0.0, 1.0, 0.0),
-    ];
-    for sx in [-0.5, 0.5] {
-        for sy in [-0.5, 0.5] {
-            for sz in [-0.5, 0.5] {
-                out.push(DQuat::from_xyzw(sx, sy, sz, 0.5));
-            }
-        }
-    }
-    out
-}
-
-/// The 24 rotations of the cube: the tetrahedral group and the 12 quaternions with two
-/// non-zero components ±1/√2 (up to sign).
-fn octahedral() -> Vec<DQuat> {
-    let mut out = tetrahedral();
-    let h = std::f64::consts::FRAC_1_SQRT_2;
-    let axes = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)];
-    for (a, b) in axes {
-        for sb in [-h, h] {
-            let mut v = [0.0; 4];
-            v[a] = h;
-            v[b] = sb;
-            // v = (w, x, y, z)
-            out.push(DQuat::from_xyzw(v[1], v[2], v[3], v[0]));
-        }
-    }
-    out
-}
-
-/// The 60 rotations of the icosahedron: the tetrahedral group and the even permutations of
-/// (±φ, ±1, ±1/φ, 0)/2 (up to sign).
-fn icosahedral() -> Vec<DQuat> {
-    let phi = (1.0 + 5f64.sqrt()) / 2.0;
-    let base = [phi / 2.0, 0.5, 1.0 / (2.0 * phi), 0.0];
-    let even_perms: [[usize; 4]; 12] = [
-        [0, 1, 2, 3],
-        [0, 2, 3, 1],
-        [0, 3, 1, 2],
-        [1, 0, 3, 2],
-        [1, 2, 0, 3],
-        [1, 3, 2, 0],
-        [2, 0, 1, 3],
-        [2, 1, 3, 0],
-        [2, 3, 0, 1],
-        [3, 0, 2, 1],
-        [3, 1, 0, 2],
-        [3, 2, 1, 0],
-    ];
-    let mut out = tetrahedral();
-    for p in even_perms {
-        for s1 in [-1.0, 1.0] {
-            for s2 in [-1.0, 1.0] {
-                for s3 in [-1.0, 1.0] {
-                    let signs = [1.0, s1, s2, s3];
-                    let mut v = [0.0; 4];
-                    for k in 0..4 {
-                        v[p[k]] = base[k] * signs[k];
-                    }
-                    let q = DQuat::from_xyzw(v[1], v[2], v[3], v[0]);
-                    if !out.iter().any(|o| o.dot(q).abs() > 1.0 - 1e-9) {
-                        out.push(q);
-                    }
-                }
-            }
-        }
-    }
-    out
 }
 
 /// How the model is drawn into a crop: its mesh (normalised) or its points (splatted).
@@ -141,7 +49,10 @@ pub enum ModelShape {
     /// Surface points (normalised units), each drawn as a square of side `2·radius` (normalised
     /// units) facing the camera; `radius` ≈ the points' spacing, so the squares close the
     /// surface.
-    Points { points: Arc<Vec<Vec3>>, radius: f32 },
+    Points {
+        points: Arc<Vec<Vec3>>,
+        radius: f32,
+    },
 }
 
 impl ModelShape {
@@ -424,7 +335,10 @@ fn splat(points: &[Vec3], pose: &Pose, k: &Intrinsics, radius: f32) -> DepthImag
         if c.z <= 1e-3 {
             continue;
         }
-        let (u, v) = (k.fx * (c.x / c.z) as f64 + k.cx, k.fy * (c.y / c.z) as f64 + k.cy);
+        let (u, v) = (
+            k.fx * (c.x / c.z) as f64 + k.cx,
+            k.fy * (c.y / c.z) as f64 + k.cy,
+        );
         let (ru, rv) = (k.fx * (radius / c.z) as f64, k.fy * (radius / c.z) as f64);
         let (ua, ub) = ((u - ru).round().max(0.0) as i64, (u + ru).round() as i64);
         let (va, vb) = ((v - rv).round().max(0.0) as i64, (v + rv).round() as i64);
@@ -454,28 +368,7 @@ pub fn rotate_points(points: &[Vec3], rotation: &Pose) -> Vec<Vec3> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn rotation_sets_are_groups_of_distinct_rotations() {
-        for n in [1, 12, 24, 60] {
-            let set = rotation_set(n).unwrap();
-            assert_eq!(set.len(), n);
-            for (i, a) in set.iter().enumerate() {
-                for b in &set[..i] {
-                    assert!(a.rotation_angle_to(b) > 1e-6, "duplicates in the {n}-set");
-                }
-                // Closed under composition: a·b is in the set.
-                for b in &set {
-                    let ab = a.compose(b);
-                    assert!(
-                        set.iter().any(|c| c.rotation_angle_to(&ab) < 1e-6),
-                        "the {n}-set is not closed"
-                    );
-                }
-            }
-        }
-        assert!(rotation_set(7).is_err());
-    }
+    use ic_geometry::glam::DVec3;
 
     /// A procedural object (normalised) seen from 3 units by a 160×120 camera: its depth map,
     /// mask, intrinsics, mesh and true pose.
@@ -486,7 +379,10 @@ mod tests {
         let k = Intrinsics::new(131.25, 131.25, 79.5, 59.5, 160, 120).unwrap();
         let truth = ic_geometry::look_at(DVec3::new(1.8, 1.2, 1.8), DVec3::ZERO, DVec3::Z).unwrap();
         let view = CpuRenderer::new()
-            .render(&Scene::single(mesh.clone(), Pose::IDENTITY, 1), &Camera::new(k, truth))
+            .render(
+                &Scene::single(mesh.clone(), Pose::IDENTITY, 1),
+                &Camera::new(k, truth),
+            )
             .unwrap();
         (view.depth.clone(), view.mask(1), k, mesh, truth)
     }
@@ -502,11 +398,18 @@ mod tests {
             // The true pose turned 180° about the camera's viewing axis through the object.
             let centre = truth.apply(DVec3::ZERO);
             let flip = Pose::from_translation(centre)
-                .compose(&Pose::from_axis_angle(DVec3::Z, std::f64::consts::PI, DVec3::ZERO))
+                .compose(&Pose::from_axis_angle(
+                    DVec3::Z,
+                    std::f64::consts::PI,
+                    DVec3::ZERO,
+                ))
                 .compose(&Pose::from_translation(-centre))
                 .compose(&truth);
             let wrong = obs.score(&shape, &flip);
-            assert!(wrong.score < right.score - 0.2, "seed {seed}: {wrong:?} vs {right:?}");
+            assert!(
+                wrong.score < right.score - 0.2,
+                "seed {seed}: {wrong:?} vs {right:?}"
+            );
             // Points splatted score the true pose well too.
             let pts = ic_geometry::sampling::sample_surface_uniform(&mesh, 4096, seed)
                 .unwrap()
@@ -526,7 +429,10 @@ mod tests {
         let k = Intrinsics::new(131.25, 131.25, 79.5, 59.5, 160, 120).unwrap();
         let truth = ic_geometry::look_at(DVec3::new(2.2, 1.0, 1.5), DVec3::ZERO, DVec3::Z).unwrap();
         let view = CpuRenderer::new()
-            .render(&Scene::single(mesh.clone(), Pose::IDENTITY, 1), &Camera::new(k, truth))
+            .render(
+                &Scene::single(mesh.clone(), Pose::IDENTITY, 1),
+                &Camera::new(k, truth),
+            )
             .unwrap();
         let obs = Observation::from_depth(&view.depth, &k, &view.mask(1)).unwrap();
         let shape = ModelShape::Mesh(mesh);
@@ -534,31 +440,23 @@ mod tests {
         assert!(base.score > 0.9, "{base:?}");
         // Turned about the cylinder's own axis (z of the model frame): the same surface.
         for deg in [17.0f64, 90.0, 180.0, 271.0] {
-            let turned = truth.compose(&Pose::from_axis_angle(DVec3::Z, deg.to_radians(), DVec3::ZERO));
+            let turned = truth.compose(&Pose::from_axis_angle(
+                DVec3::Z,
+                deg.to_radians(),
+                DVec3::ZERO,
+            ));
             let s = obs.score(&shape, &turned);
-            assert!((s.score - base.score).abs() < 0.03, "{deg}°: {s:?} vs {base:?}");
+            assert!(
+                (s.score - base.score).abs() < 0.03,
+                "{deg}°: {s:?} vs {base:?}"
+            );
         }
         // Tipped over by 90°: not equivalent, scores far lower.
-        let tipped = truth.compose(&Pose::from_axis_angle(DVec3::X, 90f64.to_radians(), DVec3::ZERO));
+        let tipped = truth.compose(&Pose::from_axis_angle(
+            DVec3::X,
+            90f64.to_radians(),
+            DVec3::ZERO,
+        ));
         assert!(obs.score(&shape, &tipped).score < base.score - 0.2);
-    }
-
-    #[test]
-    fn every_rotation_is_within_a_covering_radius_of_the_24_set() {
-        // Seeded random rotations: each is within 63° of a cube-group rotation (the group's
-        // covering radius is ≈ 62.8°).
-        use rand::{Rng, SeedableRng};
-        let set = rotation_set(24).unwrap();
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
-        for _ in 0..500 {
-            let g = |rng: &mut rand_chacha::ChaCha8Rng| rng.random::<f64>() * 2.0 - 1.0;
-            let (w, x, y, z) = (g(&mut rng), g(&mut rng), g(&mut rng), g(&mut rng));
-            let r = Pose::from_quaternion(w, x, y, z, DVec3::ZERO).unwrap();
-            let nearest = set
-                .iter()
-                .map(|s| s.rotation_angle_to(&r).to_degrees())
-                .fold(f64::MAX, f64::min);
-            assert!(nearest < 63.0, "{nearest}");
-        }
     }
 }

@@ -37,10 +37,19 @@ fn rotation_hypotheses_find_the_pose_verify_it_and_repeat_exactly() {
     let est = pose_of(&a["pose"]);
     let mesh = ic_geometry::io::load_mesh(sc.path("model.ply")).unwrap();
     let moved: Vec<_> = mesh.vertices.iter().map(|v| est.apply_f32(*v)).collect();
-    let truth: Vec<_> = mesh.vertices.iter().map(|v| sc.truth.apply_f32(*v)).collect();
+    let truth: Vec<_> = mesh
+        .vertices
+        .iter()
+        .map(|v| sc.truth.apply_f32(*v))
+        .collect();
     let add_s = truth
         .iter()
-        .map(|t| moved.iter().map(|m| m.distance(*t)).fold(f32::MAX, f32::min))
+        .map(|t| {
+            moved
+                .iter()
+                .map(|m| m.distance(*t))
+                .fold(f32::MAX, f32::min)
+        })
         .sum::<f32>()
         / truth.len() as f32;
     let diameter = mesh
@@ -48,11 +57,21 @@ fn rotation_hypotheses_find_the_pose_verify_it_and_repeat_exactly() {
         .iter()
         .flat_map(|a| mesh.vertices.iter().map(move |b| a.distance(*b)))
         .fold(0.0f32, f32::max);
-    assert!(add_s < 0.1 * diameter, "ADD-S {add_s} mm, diameter {diameter} mm");
+    assert!(
+        add_s < 0.1 * diameter,
+        "ADD-S {add_s} mm, diameter {diameter} mm"
+    );
     // Seeded: the same numbers again, and with another thread count.
     let (_, b, _) = register_json(
         &sc,
-        &["--rotations", "24", "--mask", &sc.p("mask.png"), "--threads", "1"],
+        &[
+            "--rotations",
+            "24",
+            "--mask",
+            &sc.p("mask.png"),
+            "--threads",
+            "1",
+        ],
     );
     assert_eq!(a["pose"], b["pose"]);
     assert_eq!(a["details"]["verification"], b["details"]["verification"]);
@@ -62,8 +81,7 @@ fn rotation_hypotheses_find_the_pose_verify_it_and_repeat_exactly() {
 fn rotation_hypotheses_without_the_object_find_nothing() {
     let sc = SmallScene::new();
     let flat = sc.path("flat.png");
-    ic_render::io::write_depth_png(&flat, &ic_geometry::Image::filled(160, 120, 1.0), 0.1)
-        .unwrap();
+    ic_render::io::write_depth_png(&flat, &ic_geometry::Image::filled(160, 120, 1.0), 0.1).unwrap();
     let o = incontext(&[
         "register",
         "--model",
