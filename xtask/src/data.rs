@@ -67,6 +67,10 @@ pub struct GenDataArgs {
 pub enum CaseSet {
     Noback,
     Room,
+    /// Deployment views (whole sphere, any orientation, sensor model, occluders, truncation;
+    /// no copy rotations, no scale augmentation) with depth.png, camera.json, mask.png and the
+    /// normalised model.ply: what `incontext eval --cases` registers like a user's mesh.
+    View,
 }
 
 #[derive(Args, Debug)]
@@ -312,6 +316,32 @@ pub fn export_cases(args: ExportArgs) -> Result<()> {
                 cases.push(
                     json!({"case": name, "object_id": s.object_id, "inliers": s.inlier_count()}),
                 );
+                bar.inc(1);
+            }
+            config
+        }
+        CaseSet::View => {
+            let cfg = ObjectSampleConfig {
+                copy_rotations: 0,
+                scale_augmentation: None,
+                keep_images: true,
+                ..ObjectSampleConfig::deployment()
+            };
+            let config = json!({"set": "view", "seed": args.seed, "corpus": corpus_desc, "split": args.corpus.split, "count": args.count, "sample": cfg});
+            println!(
+                "export-cases seed {} config {}",
+                args.seed,
+                serde_json::to_string(&config)?
+            );
+            let g = Arc::new(ObjectSampleGenerator::new(corpus.clone(), cfg, args.seed)?);
+            for s in Prefetcher::new(0, Some(args.count), workers, 2, move |i| g.sample(i)) {
+                let s = s?;
+                let name = format!("case_{:05}", s.index);
+                let object = corpus.object(corpus.position(&s.object_id).with_context(|| {
+                    format!("object {} is not in the corpus", s.object_id)
+                })?)?;
+                ic_data::export::write_view_case(args.out.join(&name), &s, &object.mesh, args.seed)?;
+                cases.push(json!({"case": name, "object_id": s.object_id, "inliers": s.inlier_count(), "observed_voxels": s.observed_voxels}));
                 bar.inc(1);
             }
             config

@@ -141,3 +141,54 @@ pub fn write_room_case(
         &json!({"cam_K": k.k_row_major().concat(), "depth_scale": depth_scale, "width": k.width, "height": k.height, "unit_mm": unit_mm}),
     )
 }
+
+/// Writes a deployment view case into `dir`: the object-alone files, plus `depth.png`
+/// (16-bit, depth scale 0.1: tenths of a mm), `camera.json` (`unit_mm` = the sample's
+/// millimetres per normalised unit), `mask.png` (the visible object) and `model.ply` (the
+/// normalised mesh the pose refers to, so a case can be registered like a user's mesh).
+/// Fails unless the sample kept its images and its model was not scale-augmented.
+pub fn write_view_case(
+    dir: impl AsRef<Path>,
+    sample: &ObjectSample,
+    mesh: &ic_geometry::Mesh,
+    seed: u64,
+) -> Result<(), DataError> {
+    let dir = dir.as_ref();
+    let (Some(depth), Some(mask)) = (&sample.depth, &sample.mask) else {
+        return Err(DataError::Config {
+            field: "keep_images",
+            message: "a view case needs the sample's depth map and mask".into(),
+        });
+    };
+    if sample.model_scale != ic_geometry::glam::Vec3::ONE {
+        return Err(DataError::Config {
+            field: "scale_augmentation",
+            message: "a view case needs the corpus mesh itself (no scale augmentation)".into(),
+        });
+    }
+    write_object_case(dir, sample, seed)?;
+    let unit_mm = if sample.metres_per_unit > 0.0 {
+        sample.metres_per_unit * 1000.0
+    } else {
+        ROOM_UNIT_MM
+    };
+    let depth_scale = 0.1;
+    let metres = Image {
+        width: depth.width,
+        height: depth.height,
+        data: depth
+            .data
+            .iter()
+            .map(|&z| (z as f64 * unit_mm / 1000.0) as f32)
+            .collect(),
+    };
+    ic_render::io::write_depth_png(dir.join("depth.png"), &metres, depth_scale)?;
+    ic_render::io::write_mask_png(dir.join("mask.png"), mask)?;
+    ic_geometry::io::write_mesh_ply(dir.join("model.ply"), mesh, PlyEncoding::BinaryLittleEndian)?;
+    let k = sample.intrinsics;
+    write_json_atomic(
+        &dir.join("camera.json"),
+        &json!({"cam_K": k.k_row_major().concat(), "depth_scale": depth_scale, "width": k.width, "height": k.height, "unit_mm": unit_mm}),
+    )
+}
+

@@ -232,6 +232,13 @@ fn progress(len: u64, what: &str) -> indicatif::ProgressBar {
 // ---------------------------------------------------------------------------------------------
 // --cases
 
+/// The model of a case: its points (`source.ply`), or its normalised mesh (`model.ply`, in
+/// the view cases of `export-cases --set view`), registered like a user's mesh.
+pub enum CaseModel {
+    Points(Vec<Vec3>),
+    Mesh(ic_geometry::Mesh),
+}
+
 /// What a case folder holds, read before the clock starts.
 pub enum CaseInput {
     /// Object alone: the observed points of `target.ply`.
@@ -257,8 +264,13 @@ fn case_mask_path(dir: &Path) -> Option<PathBuf> {
 }
 
 /// Reads a case folder (never `gt.json`): the model points (`source.ply`) and the observation.
-pub fn read_case(dir: &Path, gt_mask: bool) -> Result<(Vec<Vec3>, CaseInput)> {
-    let source = ic_geometry::io::read_ply_cloud(dir.join("source.ply"))?.points;
+pub fn read_case(dir: &Path, gt_mask: bool) -> Result<(CaseModel, CaseInput)> {
+    let mesh_path = dir.join("model.ply");
+    let source = if mesh_path.is_file() {
+        CaseModel::Mesh(inputs::read_mesh(&mesh_path)?)
+    } else {
+        CaseModel::Points(ic_geometry::io::read_ply_cloud(dir.join("source.ply"))?.points)
+    };
     if !is_room_case(dir) {
         let target = ic_geometry::io::read_ply_cloud(dir.join("target.ply"))?.points;
         return Ok((source, CaseInput::Points(target)));
@@ -301,11 +313,14 @@ pub fn read_case(dir: &Path, gt_mask: bool) -> Result<(Vec<Vec3>, CaseInput)> {
 /// Registers a case read by [`read_case`]: everything that `seconds` counts.
 pub fn register_case(
     pipeline: &Pipeline,
-    source: &[Vec3],
+    model: &CaseModel,
     input: &CaseInput,
     seed: u64,
 ) -> Result<Registration> {
-    let object = Object::from_points(source.to_vec())?;
+    let object = match model {
+        CaseModel::Points(source) => Object::from_points(source.clone())?,
+        CaseModel::Mesh(mesh) => Object::from_mesh(mesh.clone(), seed)?,
+    };
     match input {
         CaseInput::Points(target) => pipeline.register_points(&object, target, seed),
         CaseInput::Depth {
