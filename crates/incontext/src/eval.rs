@@ -77,6 +77,9 @@ pub struct EvalArgs {
     /// default: the pipeline's.
     #[arg(long)]
     pub sweep_points: Option<usize>,
+    /// Hypotheses of the `-verify` methods refined by ICP and verified (see `register`).
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=60))]
+    pub verify_top: u32,
 }
 
 impl EvalArgs {
@@ -84,6 +87,7 @@ impl EvalArgs {
         PipelineOptions {
             hypotheses: self.hypotheses as usize,
             rotations: self.rotations.unwrap_or(1),
+            verify_top: self.verify_top as usize,
             sweep_points: self
                 .sweep_points
                 .unwrap_or(PipelineOptions::default().sweep_points),

@@ -245,7 +245,7 @@ impl Default for PipelineOptions {
             confidence_ok: CONFIDENCE_OK,
             confidence_found: CONFIDENCE_FOUND,
             rotations: 1,
-            verify_top: 4,
+            verify_top: 8,
             sweep_points: 0,
         }
     }

@@ -84,6 +84,10 @@ pub struct NetworkArgs {
     /// are refined by ICP and verified by rendering the model against the depth map.
     #[arg(long, default_value_t = 1, value_parser = parse_rotations)]
     pub rotations: usize,
+    /// With --rotations: how many of the rotated copies' one-shot poses (ranked by how many
+    /// object points they explain) are refined by ICP and verified by render-and-compare.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=60))]
+    pub verify_top: u32,
 }
 
 pub fn parse_rotations(s: &str) -> std::result::Result<usize, String> {
@@ -125,6 +129,7 @@ impl NetworkArgs {
             refine: self.refine,
             hypotheses: self.hypotheses as usize,
             rotations: self.rotations,
+            verify_top: self.verify_top as usize,
             ..PipelineOptions::default()
         };
         Pipeline::load(
