@@ -98,39 +98,12 @@ pub fn check_replaceable(what: &str, path: &Path) -> Result<()> {
     if ft.is_file() {
         return Ok(());
     }
-    let kind = if ft.is_symlink() {
-        "a symbolic link".to_string()
-    } else if ft.is_dir() {
-        "a folder".to_string()
-    } else {
-        special_kind(&ft).to_string()
-    };
+    let kind = ic_geometry::io::describe_file_type(&ft);
     Err(CliError::input(format!(
         "{}: refusing to write {what} there: it is {kind}, not a regular file \
          (give a new path or an existing regular file)",
         path.display()
     )))
-}
-
-#[cfg(unix)]
-fn special_kind(ft: &std::fs::FileType) -> &'static str {
-    use std::os::unix::fs::FileTypeExt;
-    if ft.is_char_device() {
-        "a character device"
-    } else if ft.is_block_device() {
-        "a block device"
-    } else if ft.is_fifo() {
-        "a FIFO"
-    } else if ft.is_socket() {
-        "a socket"
-    } else {
-        "a special file"
-    }
-}
-
-#[cfg(not(unix))]
-fn special_kind(_: &std::fs::FileType) -> &'static str {
-    "a special file"
 }
 
 /// Checks every output against [`check_replaceable`], against every input and against the

@@ -594,15 +594,33 @@ impl Pipeline {
         }
         let best = best.expect("at least one hypothesis");
         seconds.total = clock.elapsed().as_secs_f64();
-        Ok(Registration {
+        let confidence = best.confidence;
+        let made = self.options.hypotheses.max(1);
+        Ok(self.registration(object, best, confidence, None, (made, 0), voxels, seconds))
+    }
+
+    /// The registration of the winning hypothesis, with the confidence its verdict rests on
+    /// and (made, verified) hypothesis counts.
+    #[allow(clippy::too_many_arguments)]
+    fn registration(
+        &self,
+        object: &Object,
+        best: Hypothesis,
+        confidence: f64,
+        verification: Option<crate::verify::Score>,
+        (made, verified): (usize, usize),
+        voxels: Vec<Vec3>,
+        seconds: StageSeconds,
+    ) -> Registration {
+        Registration {
             pose: object.normalisation.pose_to_original(&best.pose),
             pose_normalised: best.pose,
             one_shot_normalised: best.one_shot,
-            confidence: best.confidence,
-            verdict: Verdict::of(best.confidence, &self.options),
-            verification: None,
-            hypotheses_made: self.options.hypotheses.max(1),
-            hypotheses_verified: 0,
+            confidence,
+            verdict: Verdict::of(confidence, &self.options),
+            verification,
+            hypotheses_made: made,
+            hypotheses_verified: verified,
             segmentation: None,
             object_points: voxels.len(),
             object_voxels: voxels.len(),
@@ -612,7 +630,7 @@ impl Pipeline {
             seconds,
             observed: voxels,
             mask: None,
-        })
+        }
     }
 
     /// Hypothesise and verify: for each draw of points (`hypotheses`) and each rotation of
@@ -693,25 +711,16 @@ impl Pipeline {
         }
         let (score, best) = best.expect("at least one hypothesis");
         seconds.total = clock.elapsed().as_secs_f64();
-        Ok(Registration {
-            pose: object.normalisation.pose_to_original(&best.pose),
-            pose_normalised: best.pose,
-            one_shot_normalised: best.one_shot,
-            confidence: score.score,
-            verdict: Verdict::of(score.score, &self.options),
-            verification: Some(score),
-            hypotheses_made: made,
-            hypotheses_verified: self.options.verify_top.max(1).min(made),
-            segmentation: None,
-            object_points: voxels.len(),
-            object_voxels: voxels.len(),
-            inlier_count: best.inlier_count,
-            assignment_confidence: best.assignment_confidence,
-            icp: best.icp,
+        let verified = self.options.verify_top.max(1).min(made);
+        Ok(self.registration(
+            object,
+            best,
+            score.score,
+            Some(score),
+            (made, verified),
+            voxels,
             seconds,
-            observed: voxels,
-            mask: None,
-        })
+        ))
     }
 
     /// Fraction of `voxels` (camera frame) within [`MATCH_DISTANCE`] of the model's dense

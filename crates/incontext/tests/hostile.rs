@@ -63,23 +63,7 @@ fn run_bounded(args: &[&str], envs: &[(&str, &str)], mem: u64, secs: u64) -> Out
 /// needles, no panic.
 #[track_caller]
 fn check_bounded(args: &[&str], code: i32, needles: &[&str]) -> Output {
-    let o = run_bounded(args, &[], TWO_GIB, 60);
-    let err = stderr(&o);
-    assert_eq!(
-        o.status.code(),
-        Some(code),
-        "incontext {}\nstderr: {err}",
-        args.join(" ")
-    );
-    for n in needles {
-        assert!(
-            err.contains(n),
-            "incontext {}: stderr lacks {n:?}:\n{err}",
-            args.join(" ")
-        );
-    }
-    assert!(!err.contains("panicked"), "a panic: {err}");
-    o
+    assert_exit(run_bounded(args, &[], TWO_GIB, 60), args, code, needles)
 }
 
 fn crc32(bytes: &[u8]) -> u32 {

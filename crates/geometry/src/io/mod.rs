@@ -136,11 +136,7 @@ pub fn open_regular(path: &Path, max_bytes: u64) -> std::io::Result<std::io::Tak
 fn check_regular(meta: &std::fs::Metadata, max_bytes: u64) -> std::io::Result<()> {
     let ft = meta.file_type();
     if !ft.is_file() {
-        let what = if ft.is_dir() {
-            "a folder"
-        } else {
-            file_type_name(&ft)
-        };
+        let what = describe_file_type(&ft);
         return Err(std::io::Error::new(
             std::io::ErrorKind::InvalidInput,
             format!("not a regular file ({what})"),
@@ -150,6 +146,18 @@ fn check_regular(meta: &std::fs::Metadata, max_bytes: u64) -> std::io::Result<()
         return Err(too_large(meta.len(), max_bytes));
     }
     Ok(())
+}
+
+/// What a non-regular file is, for messages: "a symbolic link", "a folder", "a character
+/// device", "a block device", "a FIFO", "a socket" or "a special file".
+pub fn describe_file_type(ft: &std::fs::FileType) -> &'static str {
+    if ft.is_symlink() {
+        "a symbolic link"
+    } else if ft.is_dir() {
+        "a folder"
+    } else {
+        file_type_name(ft)
+    }
 }
 
 #[cfg(unix)]
@@ -330,14 +338,7 @@ pub fn write_atomic_with<E>(
 fn check_replaceable(path: &Path) -> std::io::Result<()> {
     match std::fs::symlink_metadata(path) {
         Ok(meta) if !meta.file_type().is_file() => {
-            let ft = meta.file_type();
-            let what = if ft.is_symlink() {
-                "a symbolic link"
-            } else if ft.is_dir() {
-                "a folder"
-            } else {
-                file_type_name(&ft)
-            };
+            let what = describe_file_type(&meta.file_type());
             Err(std::io::Error::new(
                 std::io::ErrorKind::InvalidInput,
                 format!("refusing to replace {what} with a file"),

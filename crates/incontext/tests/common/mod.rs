@@ -27,7 +27,13 @@ pub fn stderr(o: &Output) -> String {
 /// returns the output.
 #[track_caller]
 pub fn check(args: &[&str], code: i32, needles: &[&str]) -> Output {
-    let o = incontext(args);
+    assert_exit(incontext(args), args, code, needles)
+}
+
+/// Checks a finished run of `incontext args`: its exit code, that stderr contains every
+/// `needles`, and no panic; returns the output.
+#[track_caller]
+pub fn assert_exit(o: Output, args: &[&str], code: i32, needles: &[&str]) -> Output {
     let err = stderr(&o);
     assert_eq!(
         o.status.code(),
