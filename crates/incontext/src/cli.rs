@@ -18,9 +18,9 @@ Units: meshes are in the depth map's units after the camera's depth_scale, i.e. 
 R row-major in files.
 
 Exit codes: 0 ok, 2 bad input (flags, files: the message names the file), 3 object not found
-(including a best pose with confidence below 0.25), 4 register's pose is uncertain (confidence
-0.25-0.6; written with \"verdict\": \"uncertain\"), 130 interrupted (no partial file left),
-1 internal error. With --json, stdout holds one JSON object: the result, or
+(including a best pose whose confidence is below the not_found threshold), 4 register's pose
+is uncertain (written with \"verdict\": \"uncertain\"), 130 interrupted (no partial file
+left), 1 internal error. With --json, stdout holds one JSON object: the result, or
 {\"error\": …, \"kind\": …, \"exit_code\": …}.";
 
 /// 6D pose of a known object in one depth map (Dang, Wang, Salzmann, CVPR 2021).
@@ -53,7 +53,8 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
-    /// The pose of a mesh in a depth map: segmentation, pose network, ICP.
+    /// The pose of a mesh in a depth map: segmentation, pose network on 24 rotated copies, ICP,
+    /// render-and-compare verification.
     #[command(after_help = "\
 Example:
   incontext register --model obj_000001.ply --depth scene/depth/000003.png --camera camera.json \\

@@ -16,12 +16,16 @@ use crate::pipeline::{Object, Pipeline, PipelineOptions, Registration, Verdict};
 /// The error of a registration whose verdict is `not_found` (exit code 3).
 pub fn not_found_error(r: &Registration, options: &PipelineOptions) -> crate::CliError {
     crate::CliError::not_found(format!(
-        "object not found: the best pose explains {:.0} % of the object's points \
+        "object not found: the best pose explains {:.0} % of the object \
          (confidence {:.2}, below {:.2}); is this the right mesh, in the depth map's units \
          (--model-unit-mm), and is the object in view?",
         100.0 * r.confidence,
         r.confidence,
-        options.confidence_found
+        if r.verification.is_some() {
+            options.verified_found
+        } else {
+            options.confidence_found
+        }
     ))
 }
 
@@ -79,10 +83,11 @@ pub struct NetworkArgs {
     /// explains the most object points wins). 1 = the paper's one-shot pipeline.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub hypotheses: u32,
-    /// Rotation hypotheses: 1 (the paper's single orientation), or 12, 24, 60 rotated copies of
-    /// the model (rotation groups covering SO(3) evenly), batched through the network; the best
-    /// are refined by ICP and verified by rendering the model against the depth map.
-    #[arg(long, default_value_t = 1, value_parser = parse_rotations)]
+    /// Rotation hypotheses: 24 (default), 12 or 60 rotated copies of the model (rotation groups
+    /// covering SO(3) evenly), batched through the network; the best are refined by ICP and
+    /// verified by rendering the model against the depth map. 1 = the paper's single
+    /// orientation, unverified (faster; right only for views like the training ones).
+    #[arg(long, default_value_t = 24, value_parser = parse_rotations)]
     pub rotations: usize,
     /// With --rotations: how many of the rotated copies' one-shot poses (ranked by how many
     /// object points they explain) are refined by ICP and verified by render-and-compare.

@@ -35,11 +35,37 @@ pub fn rotation_set(count: usize) -> Result<Vec<Pose>, String> {
     ic_geometry::rotations::rotation_group(count).map_err(|e| e.to_string())
 }
 
-/// Depth agreement tolerance at camera distance `z` (normalised units): 0.03 (1.5 % of the
-/// object's size) plus 0.5 % of the distance, so that sensor noise, which grows with distance,
-/// does not read as disagreement.
-pub fn depth_tolerance(z: f32) -> f32 {
-    0.03 + 0.005 * z
+/// Depth agreement tolerance at camera distance `z` (normalised units) for a surface of the
+/// given roughness: 0.03 (1.5 % of the object's size) plus 0.5 % of the distance, and at least
+/// three times the roughness, so that sensor noise — which grows with distance and, in
+/// normalised units, as the object gets smaller — does not read as disagreement.
+pub fn depth_tolerance(z: f32, roughness: f32) -> f32 {
+    (0.03 + 0.005 * z).max(3.0 * roughness)
+}
+
+/// The median |Δz| between horizontally adjacent pixels that are both in the mask and have a
+/// return, within rows `v0..=v1` and columns `u0..=u1`.
+fn roughness(
+    depth: &DepthImage,
+    mask: &Mask,
+    (u0, v0, u1, v1): (usize, usize, usize, usize),
+) -> f32 {
+    let w = depth.width as usize;
+    let mut d = Vec::new();
+    for v in v0..=v1 {
+        for u in u0..u1 {
+            let (i, j) = (v * w + u, v * w + u + 1);
+            let (a, b) = (depth.data[i], depth.data[j]);
+            if mask.data[i] && mask.data[j] && a > 0.0 && b > 0.0 {
+                d.push((a - b).abs());
+            }
+        }
+    }
+    if d.is_empty() {
+        return 0.0;
+    }
+    let mid = d.len() / 2;
+    *d.select_nth_unstable_by(mid, f32::total_cmp).1
 }
 
 /// How the model is drawn into a crop: its mesh (normalised) or its points (splatted).
@@ -86,6 +112,10 @@ pub struct Observation {
     pub mask: Mask,
     /// Pixels of the mask with a return.
     pub mask_pixels: usize,
+    /// The observed surface's roughness: the median |Δz| between horizontally adjacent mask
+    /// pixels of the full-resolution depth (normalised units). Sensor noise and quantisation
+    /// show up here; the agreement tolerance is never below three times it.
+    pub roughness: f32,
 }
 
 /// The render-and-compare score of one pose.
@@ -126,6 +156,7 @@ impl Observation {
             let m = ((hi - lo + 1) as f64 * 0.3).ceil() as usize;
             (lo.saturating_sub(m), (hi + m).min(max - 1))
         };
+        let rough = roughness(depth, mask, (u0, v0, u1, v1));
         let (u0, u1) = grow(u0, u1, w);
         let (v0, v1) = grow(v0, v1, h);
         let (cw, ch) = (u1 - u0 + 1, v1 - v0 + 1);
@@ -161,6 +192,7 @@ impl Observation {
             depth: d,
             mask: m,
             mask_pixels,
+            roughness: rough,
         })
     }
 
@@ -212,11 +244,17 @@ impl Observation {
             data: depth.data.iter().map(|&z| z > 0.0).collect(),
         };
         let mask_pixels = mask.data.iter().filter(|&&m| m).count();
+        let rough = roughness(
+            &depth,
+            &mask,
+            (0, 0, width as usize - 1, height as usize - 1),
+        );
         Some(Observation {
             intrinsics,
             depth,
             mask,
             mask_pixels,
+            roughness: rough,
         })
     }
 
@@ -263,7 +301,7 @@ impl Observation {
                 continue;
             }
             with_return += 1;
-            let tol = depth_tolerance(o) + slack;
+            let tol = depth_tolerance(o, self.roughness) + slack;
             if (r - o).abs() <= tol {
                 agree += 1;
                 covered += m as usize;
@@ -302,7 +340,7 @@ impl Observation {
                 continue;
             }
             landed += 1;
-            front += (c.z < o - depth_tolerance(o)) as usize;
+            front += (c.z < o - depth_tolerance(o, self.roughness)) as usize;
         }
         if landed == 0 {
             0.0
