@@ -703,9 +703,24 @@ impl Pipeline {
                 .collect();
             let estimates = self.pose.estimator.estimate_batch(&pairs)?;
             seconds.pose_network += t.elapsed().as_secs_f64();
+            let mut first_error = None;
             for (e, r) in estimates.into_iter().zip(&rotations) {
-                let pose = unrotate(&e.pose, r);
-                candidates.push((self.explained(object, &voxels, &pose), pose, e));
+                // A copy whose correspondences admit no pose is one hypothesis fewer.
+                match e {
+                    Ok(e) => {
+                        let pose = unrotate(&e.pose, r);
+                        candidates.push((self.explained(object, &voxels, &pose), pose, e));
+                    }
+                    Err(err) => {
+                        tracing::debug!("a rotated copy gave no pose: {err}");
+                        first_error.get_or_insert(err);
+                    }
+                }
+            }
+            if candidates.is_empty()
+                && let Some(err) = first_error
+            {
+                return Err(err.into());
             }
         }
         let made = candidates.len();

@@ -35,31 +35,10 @@ fn rotation_hypotheses_find_the_pose_verify_it_and_repeat_exactly() {
     // ADD-S against the truth (the object may be symmetric: the rotation error need not be
     // small), in mm, against a 0.1·diameter bound.
     let est = pose_of(&a["pose"]);
-    let mesh = ic_geometry::io::load_mesh(sc.path("model.ply")).unwrap();
-    let moved: Vec<_> = mesh.vertices.iter().map(|v| est.apply_f32(*v)).collect();
-    let truth: Vec<_> = mesh
-        .vertices
-        .iter()
-        .map(|v| sc.truth.apply_f32(*v))
-        .collect();
-    let add_s = truth
-        .iter()
-        .map(|t| {
-            moved
-                .iter()
-                .map(|m| m.distance(*t))
-                .fold(f32::MAX, f32::min)
-        })
-        .sum::<f32>()
-        / truth.len() as f32;
-    let diameter = mesh
-        .vertices
-        .iter()
-        .flat_map(|a| mesh.vertices.iter().map(move |b| a.distance(*b)))
-        .fold(0.0f32, f32::max);
+    let (error, diameter) = add_s(&sc.path("model.ply"), &est, &sc.truth);
     assert!(
-        add_s < 0.1 * diameter,
-        "ADD-S {add_s} mm, diameter {diameter} mm"
+        error < 0.1 * diameter,
+        "ADD-S {error} mm, diameter {diameter} mm"
     );
     // Seeded: the same numbers again, and with another thread count.
     let (_, b, _) = register_json(

@@ -102,13 +102,17 @@ impl PoseEstimator {
     /// have the same model and observed point counts). Each pose maps its pair's model points
     /// (model frame, normalised units) onto its observed points (camera frame).
     ///
-    /// Errors: an empty batch, differing point counts, fewer points than the network's k (or
-    /// 3), non-finite coordinates.
-    pub fn estimate_batch(&self, pairs: &[(&[Vec3], &[Vec3])]) -> Result<Vec<PoseEstimate>> {
+    /// Errors of the whole batch: an empty batch, differing point counts, fewer points than the
+    /// network's k (or 3), non-finite coordinates. A pair whose correspondences admit no pose
+    /// (degenerate for Procrustes) gets its own error in the returned list.
+    pub fn estimate_batch(
+        &self,
+        pairs: &[(&[Vec3], &[Vec3])],
+    ) -> Result<Vec<Result<PoseEstimate>>> {
         let batch = PairBatch::new(pairs, self.config.net.k, &self.device)?;
         let out = self.net.forward_t(&batch, false)?;
         let matches = out.matches()?;
-        pairs
+        Ok(pairs
             .iter()
             .zip(&matches)
             .map(|((x, y), m)| {
@@ -119,7 +123,7 @@ impl PoseEstimator {
                     assignment_confidence: r.assignment_confidence,
                 })
             })
-            .collect()
+            .collect())
     }
 
     /// The pose mapping `model_points` (model frame) onto `observed_points` (camera frame).

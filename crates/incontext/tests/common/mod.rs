@@ -168,3 +168,23 @@ pub fn check_register(sc: &SmallScene, flag: &str, value: &str, code: i32, needl
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     check(&args, code, needles);
 }
+
+/// ADD-S between two poses of the mesh at `model` (mean distance from each vertex under `a`
+/// to the nearest vertex under `b`), and the mesh's diameter, in the mesh's units. Poses
+/// equivalent under the object's symmetry give ≈ 0.
+pub fn add_s(model: &Path, a: &Pose, b: &Pose) -> (f32, f32) {
+    let mesh = ic_geometry::io::load_mesh(model).unwrap();
+    let pa: Vec<_> = mesh.vertices.iter().map(|v| a.apply_f32(*v)).collect();
+    let pb: Vec<_> = mesh.vertices.iter().map(|v| b.apply_f32(*v)).collect();
+    let add_s = pa
+        .iter()
+        .map(|p| pb.iter().map(|q| q.distance(*p)).fold(f32::MAX, f32::min))
+        .sum::<f32>()
+        / pa.len() as f32;
+    let diameter = mesh
+        .vertices
+        .iter()
+        .flat_map(|x| mesh.vertices.iter().map(move |y| x.distance(*y)))
+        .fold(0.0f32, f32::max);
+    (add_s, diameter)
+}
