@@ -337,10 +337,16 @@ pub fn export_cases(args: ExportArgs) -> Result<()> {
             for s in Prefetcher::new(0, Some(args.count), workers, 2, move |i| g.sample(i)) {
                 let s = s?;
                 let name = format!("case_{:05}", s.index);
-                let object = corpus.object(corpus.position(&s.object_id).with_context(|| {
-                    format!("object {} is not in the corpus", s.object_id)
-                })?)?;
-                ic_data::export::write_view_case(args.out.join(&name), &s, &object.mesh, args.seed)?;
+                let object =
+                    corpus.object(corpus.position(&s.object_id).with_context(|| {
+                        format!("object {} is not in the corpus", s.object_id)
+                    })?)?;
+                ic_data::export::write_view_case(
+                    args.out.join(&name),
+                    &s,
+                    &object.mesh,
+                    args.seed,
+                )?;
                 cases.push(json!({"case": name, "object_id": s.object_id, "inliers": s.inlier_count(), "observed_voxels": s.observed_voxels}));
                 bar.inc(1);
             }

@@ -191,4 +191,3 @@ pub fn write_view_case(
         &json!({"cam_K": k.k_row_major().concat(), "depth_scale": depth_scale, "width": k.width, "height": k.height, "unit_mm": unit_mm}),
     )
 }
-
