@@ -605,14 +605,10 @@ impl Pipeline {
             return self.register_verified(object, voxels, obs, seed, seconds, clock);
         }
         let mut best: Option<Hypothesis> = None;
+        let target = self.icp_target(object, &mut seconds)?;
         for h in 0..self.options.hypotheses.max(1) {
-            // Hypothesis 0 draws from `seed` itself, so one hypothesis is the paper's pipeline.
-            let hseed = if h == 0 {
-                seed
-            } else {
-                ic_data::mix_seed(seed, h as u64)
-            };
-            let hyp = self.hypothesis(object, &voxels, hseed, &mut seconds)?;
+            let hseed = hypothesis_seed(seed, h);
+            let hyp = self.hypothesis(object, &voxels, target.as_ref(), hseed, &mut seconds)?;
             if best.as_ref().is_none_or(|b| hyp.confidence > b.confidence) {
                 best = Some(hyp);
             }
@@ -683,17 +679,8 @@ impl Pipeline {
         };
         let mut candidates: Vec<(f64, Pose, ic_pose::PoseEstimate)> = Vec::new();
         for h in 0..self.options.hypotheses.max(1) {
-            let hseed = if h == 0 {
-                seed
-            } else {
-                ic_data::mix_seed(seed, h as u64)
-            };
             let t = Instant::now();
-            let mut rng = ChaCha8Rng::seed_from_u64(hseed);
-            let xi = random_subsample_indices(object.points.len(), m, &mut rng)?;
-            let yi = random_subsample_indices(voxels.len(), n, &mut rng)?;
-            let x: Vec<Vec3> = xi.iter().map(|&i| object.points[i]).collect();
-            let y: Vec<Vec3> = yi.iter().map(|&i| voxels[i]).collect();
+            let (x, y, _) = draw_points(object, &voxels, (m, n), hypothesis_seed(seed, h))?;
             let copies: Vec<Vec<Vec3>> = rotations.iter().map(|r| rotate_points(&x, r)).collect();
             seconds.observed_points += t.elapsed().as_secs_f64();
             let t = Instant::now();
@@ -734,9 +721,11 @@ impl Pipeline {
             None => ModelShape::points(object.points.clone(), 0.5 * self.options.voxel_size),
         };
         let mut rng = ChaCha8Rng::seed_from_u64(ic_data::mix_seed(seed, 0x5e1f));
+        let target = self.icp_target(object, &mut seconds)?;
         let mut best: Option<(crate::verify::Score, Hypothesis)> = None;
         for (_, one_shot, estimate) in candidates.iter().take(self.options.verify_top.max(1)) {
-            let (pose, icp) = self.refine(object, &voxels, one_shot, &mut rng, &mut seconds)?;
+            let (pose, icp) =
+                self.refine(target.as_ref(), &voxels, one_shot, &mut rng, &mut seconds)?;
             let t = Instant::now();
             let score = observation.score(&shape, &pose);
             seconds.verification += t.elapsed().as_secs_f64();
@@ -777,19 +766,37 @@ impl Pipeline {
         explained as f64 / voxels.len().max(1) as f64
     }
 
-    /// The pipeline's refinement of a one-shot pose (ICP of at most `icp_max_points` object
-    /// voxels onto the dense model points, or nothing).
+    /// The ICP target of the dense model points with their normals, indexed once per
+    /// registration; `None` when the pipeline does not refine.
+    fn icp_target<'o>(
+        &self,
+        object: &'o Object,
+        seconds: &mut StageSeconds,
+    ) -> Result<Option<IcpTarget<'o>>> {
+        match self.options.refine {
+            Refine::None => Ok(None),
+            Refine::Icp => {
+                let t = Instant::now();
+                let target = IcpTarget::new(&object.points, Some(&object.normals))?;
+                seconds.icp += t.elapsed().as_secs_f64();
+                Ok(Some(target))
+            }
+        }
+    }
+
+    /// The pipeline's refinement of a one-shot pose: ICP of at most `icp_max_points` object
+    /// voxels onto `target` ([`Pipeline::icp_target`]), or nothing without a target.
     fn refine(
         &self,
-        object: &Object,
+        target: Option<&IcpTarget>,
         voxels: &[Vec3],
         one_shot: &Pose,
         rng: &mut ChaCha8Rng,
         seconds: &mut StageSeconds,
     ) -> Result<(Pose, Option<IcpSummary>)> {
-        match self.options.refine {
-            Refine::None => Ok((*one_shot, None)),
-            Refine::Icp => {
+        match target {
+            None => Ok((*one_shot, None)),
+            Some(target) => {
                 let t = Instant::now();
                 let source: Vec<Vec3> = if voxels.len() > self.options.icp_max_points {
                     random_subsample_indices(voxels.len(), self.options.icp_max_points, rng)?
@@ -799,7 +806,6 @@ impl Pipeline {
                 } else {
                     voxels.to_vec()
                 };
-                let target = IcpTarget::new(&object.points, Some(&object.normals))?;
                 let options = IcpOptions {
                     method: IcpMethod::PointToPlane,
                     max_correspondence_distance: self.options.icp_max_distance,
@@ -825,16 +831,12 @@ impl Pipeline {
         &self,
         object: &Object,
         voxels: &[Vec3],
+        target: Option<&IcpTarget>,
         seed: u64,
         seconds: &mut StageSeconds,
     ) -> Result<Hypothesis> {
         let t = Instant::now();
-        let (m, n) = self.point_counts();
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let xi = random_subsample_indices(object.points.len(), m, &mut rng)?;
-        let yi = random_subsample_indices(voxels.len(), n, &mut rng)?;
-        let x: Vec<Vec3> = xi.iter().map(|&i| object.points[i]).collect();
-        let y: Vec<Vec3> = yi.iter().map(|&i| voxels[i]).collect();
+        let (x, y, mut rng) = draw_points(object, voxels, self.point_counts(), seed)?;
         seconds.observed_points += t.elapsed().as_secs_f64();
 
         let t = Instant::now();
@@ -842,7 +844,7 @@ impl Pipeline {
         seconds.pose_network += t.elapsed().as_secs_f64();
         let one_shot = estimate.pose;
 
-        let (pose, icp) = self.refine(object, voxels, &one_shot, &mut rng, seconds)?;
+        let (pose, icp) = self.refine(target, voxels, &one_shot, &mut rng, seconds)?;
         Ok(Hypothesis {
             pose,
             one_shot,
@@ -852,6 +854,32 @@ impl Pipeline {
             icp,
         })
     }
+}
+
+/// The seed of hypothesis `h`: hypothesis 0 draws from `seed` itself, so one hypothesis is the
+/// paper's pipeline.
+fn hypothesis_seed(seed: u64, h: usize) -> u64 {
+    if h == 0 {
+        seed
+    } else {
+        ic_data::mix_seed(seed, h as u64)
+    }
+}
+
+/// `m` of the object's dense points and `n` of the observed voxels, drawn in that order by a
+/// generator seeded with `seed`, which is returned for the draws that follow.
+fn draw_points(
+    object: &Object,
+    voxels: &[Vec3],
+    (m, n): (usize, usize),
+    seed: u64,
+) -> Result<(Vec<Vec3>, Vec<Vec3>, ChaCha8Rng)> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let xi = random_subsample_indices(object.points.len(), m, &mut rng)?;
+    let yi = random_subsample_indices(voxels.len(), n, &mut rng)?;
+    let x = xi.iter().map(|&i| object.points[i]).collect();
+    let y = yi.iter().map(|&i| voxels[i]).collect();
+    Ok((x, y, rng))
 }
 
 /// One pose hypothesis of [`Pipeline::register_observed`].
