@@ -355,24 +355,18 @@ impl ObjectSampleGenerator {
             let object = self.corpus.pick(&mut rng)?;
             let view_seed: u64 = rng.random();
             let view = crate::deploy::render_view(cfg, renderer, &object, view_seed)?;
-            let voxels = if view.points.is_empty() {
-                Vec::new()
-            } else {
-                voxel_downsample_points(&view.points, cfg.voxel_size)?
-            };
-            last_count = voxels.len();
-            if voxels.len() < cfg.min_observed_voxels.max(1) {
-                tracing::debug!(index, object = %object.id, voxels = voxels.len(), "too few observed voxels; redrawing");
+            let drawn = draw_points(
+                cfg,
+                &object,
+                &view.points,
+                view.model_scale,
+                index,
+                &mut rng,
+            )?;
+            last_count = drawn.voxels;
+            let Some((observed_points, mut model_points)) = drawn.points else {
                 continue;
-            }
-            let yi = random_subsample_indices(voxels.len(), cfg.observed_points, &mut rng)?;
-            let observed_points: Vec<Vec3> = yi.iter().map(|&i| voxels[i]).collect();
-            let xi =
-                random_subsample_indices(object.model_points.len(), cfg.model_points, &mut rng)?;
-            let mut model_points: Vec<Vec3> = xi
-                .iter()
-                .map(|&i| object.model_points[i] * view.model_scale)
-                .collect();
+            };
             let mut pose = view.pose;
             if let Some(group) = &self.copy_group {
                 let (g, _) = ic_geometry::rotations::nearest_in_group(
@@ -399,7 +393,7 @@ impl ObjectSampleGenerator {
                 assignment,
                 viewpoint: view.viewpoint,
                 visible_pixels: view.visible_pixels,
-                observed_voxels: voxels.len(),
+                observed_voxels: drawn.voxels,
                 normalisation: object.normalisation,
                 intrinsics: cfg.intrinsics,
                 depth,
@@ -411,13 +405,7 @@ impl ObjectSampleGenerator {
                 sensor: view.sensor,
             });
         }
-        Err(DataError::Sample {
-            index,
-            message: format!(
-                "no view with at least {} observed voxels in {} attempts (last: {last_count})",
-                cfg.min_observed_voxels, cfg.max_attempts
-            ),
-        })
+        Err(too_few_voxels(cfg, index, last_count))
     }
 
     /// The paper's protocol, exactly as the first version drew it.
@@ -438,21 +426,11 @@ impl ObjectSampleGenerator {
             let pixels = cfg
                 .intrinsics
                 .back_project_depth(&rendering.depth, Some(&mask))?;
-            let voxels = if pixels.is_empty() {
-                Vec::new()
-            } else {
-                voxel_downsample_points(&pixels, cfg.voxel_size)?
-            };
-            last_count = voxels.len();
-            if voxels.len() < cfg.min_observed_voxels.max(1) {
-                tracing::debug!(index, object = %object.id, voxels = voxels.len(), "too few observed voxels; redrawing");
+            let drawn = draw_points(cfg, &object, &pixels, Vec3::ONE, index, &mut rng)?;
+            last_count = drawn.voxels;
+            let Some((observed_points, model_points)) = drawn.points else {
                 continue;
-            }
-            let yi = random_subsample_indices(voxels.len(), cfg.observed_points, &mut rng)?;
-            let observed_points: Vec<Vec3> = yi.iter().map(|&i| voxels[i]).collect();
-            let xi =
-                random_subsample_indices(object.model_points.len(), cfg.model_points, &mut rng)?;
-            let model_points: Vec<Vec3> = xi.iter().map(|&i| object.model_points[i]).collect();
+            };
             let pose = built.object_to_camera();
             let assignment =
                 Assignment::from_pose(&model_points, &observed_points, &pose, cfg.match_threshold)?;
@@ -470,7 +448,7 @@ impl ObjectSampleGenerator {
                 assignment,
                 viewpoint: built.viewpoint,
                 visible_pixels: pixels.len(),
-                observed_voxels: voxels.len(),
+                observed_voxels: drawn.voxels,
                 normalisation: object.normalisation,
                 intrinsics: cfg.intrinsics,
                 depth,
@@ -482,12 +460,62 @@ impl ObjectSampleGenerator {
                 sensor: None,
             });
         }
-        Err(DataError::Sample {
-            index,
-            message: format!(
-                "no view with at least {} observed voxels in {} attempts (last: {last_count})",
-                cfg.min_observed_voxels, cfg.max_attempts
-            ),
-        })
+        Err(too_few_voxels(cfg, index, last_count))
+    }
+}
+
+/// What [`draw_points`] drew from one view.
+struct Drawn {
+    /// Observed voxels of the view.
+    voxels: usize,
+    /// N observed points (camera frame) and M model points (model frame, scaled by the view's
+    /// model scale); `None` when the view has fewer voxels than `min_observed_voxels`.
+    points: Option<(Vec<Vec3>, Vec<Vec3>)>,
+}
+
+/// Voxelises a view's observed `points` and draws N of the voxels, then M of the object's
+/// model points (scaled by `model_scale`), in that order, from `rng`; both protocols draw this
+/// way.
+fn draw_points(
+    cfg: &ObjectSampleConfig,
+    object: &crate::CorpusObject,
+    points: &[Vec3],
+    model_scale: Vec3,
+    index: u64,
+    rng: &mut impl Rng,
+) -> Result<Drawn, DataError> {
+    let voxels = if points.is_empty() {
+        Vec::new()
+    } else {
+        voxel_downsample_points(points, cfg.voxel_size)?
+    };
+    if voxels.len() < cfg.min_observed_voxels.max(1) {
+        tracing::debug!(index, object = %object.id, voxels = voxels.len(), "too few observed voxels; redrawing");
+        return Ok(Drawn {
+            voxels: voxels.len(),
+            points: None,
+        });
+    }
+    let yi = random_subsample_indices(voxels.len(), cfg.observed_points, rng)?;
+    let observed: Vec<Vec3> = yi.iter().map(|&i| voxels[i]).collect();
+    let xi = random_subsample_indices(object.model_points.len(), cfg.model_points, rng)?;
+    let model: Vec<Vec3> = xi
+        .iter()
+        .map(|&i| object.model_points[i] * model_scale)
+        .collect();
+    Ok(Drawn {
+        voxels: voxels.len(),
+        points: Some((observed, model)),
+    })
+}
+
+/// The error of a sample whose `max_attempts` views all had too few observed voxels.
+fn too_few_voxels(cfg: &ObjectSampleConfig, index: u64, last_count: usize) -> DataError {
+    DataError::Sample {
+        index,
+        message: format!(
+            "no view with at least {} observed voxels in {} attempts (last: {last_count})",
+            cfg.min_observed_voxels, cfg.max_attempts
+        ),
     }
 }
