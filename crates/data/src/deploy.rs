@@ -731,14 +731,7 @@ pub(crate) fn render_view(
         .zip(&rendering.depth.data)
         .filter(|(m, z)| **m && **z > 0.0)
         .count();
-    let mut eroded = mask.clone();
-    for _ in 0..cfg.mask_erosions {
-        let e = erode3x3(&eroded);
-        if !e.data.iter().any(|&b| b) {
-            break; // a sliver: keep what there is, as the pipeline does
-        }
-        eroded = e;
-    }
+    let eroded = mask.eroded3x3_keeping_some(cfg.mask_erosions);
     let mut points = window.back_project_depth(&rendering.depth, Some(&eroded))?;
     if let Some(r) = cfg.crop_radius
         && !points.is_empty()
@@ -844,20 +837,6 @@ fn occlude(r: &mut Rendering, window: &Intrinsics, o: OccluderConfig, rng: &mut 
         }
     }
     hidden as f64 / n as f64
-}
-
-/// 3×3 erosion; pixels on the image border are eroded (outside counts as background), as in
-/// the deployment pipeline.
-fn erode3x3(mask: &Mask) -> Mask {
-    let (w, h) = (mask.width as usize, mask.height as usize);
-    let mut out = Mask::filled(mask.width, mask.height, false);
-    for y in 1..h.saturating_sub(1) {
-        for x in 1..w.saturating_sub(1) {
-            out.data[y * w + x] =
-                (y - 1..=y + 1).all(|yy| (x - 1..=x + 1).all(|xx| mask.data[yy * w + xx]));
-        }
-    }
-    out
 }
 
 #[cfg(test)]

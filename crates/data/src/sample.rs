@@ -148,14 +148,7 @@ impl ObjectSampleConfig {
     /// minimum of 64 voxels are the paper's.
     pub fn deployment() -> Self {
         ObjectSampleConfig {
-            intrinsics: Intrinsics {
-                fx: 525.0,
-                fy: 525.0,
-                cx: 319.5,
-                cy: 239.5,
-                width: 640,
-                height: 480,
-            },
+            intrinsics: Intrinsics::KINECT_640X480,
             rotation: ObjectRotation::Uniform,
             viewpoints: ViewSampling::Sphere,
             camera_roll: true,

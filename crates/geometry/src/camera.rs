@@ -45,6 +45,17 @@ impl Intrinsics {
         Ok(k)
     }
 
+    /// A Kinect-like 640×480 camera: fx = fy = 525 pixels, principal point at the image centre
+    /// (a 49° vertical field of view).
+    pub const KINECT_640X480: Intrinsics = Intrinsics {
+        fx: 525.0,
+        fy: 525.0,
+        cx: 319.5,
+        cy: 239.5,
+        width: 640,
+        height: 480,
+    };
+
     /// Intrinsics with square pixels, the principal point at the image centre and the given
     /// vertical field of view (degrees).
     pub fn from_fov_y(width: u32, height: u32, fov_y_deg: f64) -> Result<Self, GeometryError> {

@@ -28,6 +28,37 @@ impl<T: Clone> Image<T> {
     }
 }
 
+impl Image<bool> {
+    /// Binary erosion with a 3×3 square kernel; pixels outside the image count as background
+    /// (so the border row and column are always eroded).
+    pub fn eroded3x3(&self) -> Mask {
+        let (w, h) = (self.width as usize, self.height as usize);
+        let mut out = Mask::filled(self.width, self.height, false);
+        for y in 1..h.saturating_sub(1) {
+            for x in 1..w.saturating_sub(1) {
+                out.data[y * w + x] =
+                    (y - 1..=y + 1).all(|yy| (x - 1..=x + 1).all(|xx| self.data[yy * w + xx]));
+            }
+        }
+        out
+    }
+
+    /// Up to `times` 3×3 erosions ([`Image::eroded3x3`]), stopping before one that would leave
+    /// the mask empty: a sliver keeps what there is rather than nothing (the pipeline's
+    /// erosion before back-projection, which training samples imitate).
+    pub fn eroded3x3_keeping_some(&self, times: usize) -> Mask {
+        let mut eroded = self.clone();
+        for _ in 0..times {
+            let e = eroded.eroded3x3();
+            if !e.data.iter().any(|&b| b) {
+                break;
+            }
+            eroded = e;
+        }
+        eroded
+    }
+}
+
 impl<T> Image<T> {
     /// Wraps `data`; fails when its length is not `width * height`.
     pub fn from_vec(width: u32, height: u32, data: Vec<T>) -> Result<Self, GeometryError> {

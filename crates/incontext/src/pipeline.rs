@@ -519,14 +519,7 @@ impl Pipeline {
         };
         let t = Instant::now();
         let post = self.post_config();
-        let mut eroded = mask.clone();
-        for _ in 0..post.erosions {
-            let e = ic_seg::post::erode3x3(&eroded);
-            if !e.data.iter().any(|&b| b) {
-                break; // a sliver: keep what there is rather than nothing
-            }
-            eroded = e;
-        }
+        let eroded = mask.eroded3x3_keeping_some(post.erosions);
         let points = ic_seg::post::masked_points(depth_n, intrinsics, &eroded, post.crop_radius)
             .map_err(|e| match (summary.source, e) {
                 ("mask", e) => CliError::input(format!("mask: {e}")),

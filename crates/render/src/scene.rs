@@ -151,14 +151,7 @@ impl Default for SceneConfig {
         SceneConfig {
             background: Background::Room,
             room: RoomConfig::default(),
-            intrinsics: Intrinsics {
-                fx: 525.0,
-                fy: 525.0,
-                cx: 319.5,
-                cy: 239.5,
-                width: 640,
-                height: 480,
-            },
+            intrinsics: Intrinsics::KINECT_640X480,
             view: ViewSphere::paper(2.8),
             near: DEFAULT_NEAR,
             rotation: ObjectRotation::Canonical,

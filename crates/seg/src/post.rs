@@ -130,17 +130,10 @@ pub fn best_instance(
     }
 }
 
-/// Binary erosion with a 3×3 square kernel; pixels outside the image count as background.
+/// Binary erosion with a 3×3 square kernel; pixels outside the image count as background
+/// ([`Mask::eroded3x3`]).
 pub fn erode3x3(mask: &Mask) -> Mask {
-    let (w, h) = (mask.width as usize, mask.height as usize);
-    let mut out = Mask::filled(mask.width, mask.height, false);
-    for y in 1..h.saturating_sub(1) {
-        for x in 1..w.saturating_sub(1) {
-            out.data[y * w + x] =
-                (y - 1..=y + 1).all(|yy| (x - 1..=x + 1).all(|xx| mask.data[yy * w + xx]));
-        }
-    }
-    out
+    mask.eroded3x3()
 }
 
 /// Square dilation (`grow`) or erosion (`!grow`) by `radius` pixels, as separable running
