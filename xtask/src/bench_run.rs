@@ -14,11 +14,13 @@ use anyhow::{Context, Result};
 use crate::bench_cases::{CaseSet, Set};
 
 /// Our methods, as `incontext eval --method` names them, with the head they need.
-pub const OUR_METHODS: [(&str, &str); 4] = [
+pub const OUR_METHODS: [(&str, &str); 6] = [
     ("ours-softmax", "softmax"),
     ("ours-softmax-icp", "softmax"),
+    ("ours-softmax-verify", "softmax"),
     ("ours-ot", "ot"),
     ("ours-ot-icp", "ot"),
+    ("ours-ot-verify", "ot"),
 ];
 
 /// Open3D methods of the peers' script (their lines say `o3d-<name>`).

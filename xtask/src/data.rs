@@ -67,9 +67,10 @@ pub struct GenDataArgs {
 pub enum CaseSet {
     Noback,
     Room,
-    /// Deployment views (whole sphere, any orientation, sensor model, occluders, truncation;
-    /// no copy rotations, no scale augmentation) with depth.png, camera.json, mask.png and the
-    /// normalised model.ply: what `incontext eval --cases` registers like a user's mesh.
+    /// Object views of `--protocol` (default deployment: whole sphere, any orientation,
+    /// sensor model, occluders, truncation; no copy rotations, no scale augmentation) with
+    /// depth.png, camera.json, mask.png and the normalised model.ply: what
+    /// `incontext eval --cases` registers like a user's mesh.
     View,
 }
 
@@ -87,6 +88,10 @@ pub struct ExportArgs {
     pub out: PathBuf,
     #[arg(long)]
     pub workers: Option<usize>,
+    /// Sampling protocol of `--set view`: paper, sphere (the paper's with whole-sphere
+    /// viewpoints) or deployment.
+    #[arg(long, default_value = "deployment")]
+    pub protocol: String,
 }
 
 fn parse_range(s: &str, what: &str) -> Result<(u64, u64)> {
@@ -321,13 +326,14 @@ pub fn export_cases(args: ExportArgs) -> Result<()> {
             config
         }
         CaseSet::View => {
+            let protocol: ic_data::SamplingProtocol = args.protocol.parse()?;
             let cfg = ObjectSampleConfig {
                 copy_rotations: 0,
                 scale_augmentation: None,
                 keep_images: true,
-                ..ObjectSampleConfig::deployment()
+                ..protocol.config()
             };
-            let config = json!({"set": "view", "seed": args.seed, "corpus": corpus_desc, "split": args.corpus.split, "count": args.count, "sample": cfg});
+            let config = json!({"set": "view", "protocol": protocol.as_str(), "seed": args.seed, "corpus": corpus_desc, "split": args.corpus.split, "count": args.count, "sample": cfg});
             println!(
                 "export-cases seed {} config {}",
                 args.seed,

@@ -27,6 +27,9 @@
 //!   room scenes rendered on the fly (resumable, Ctrl-C saves).
 //! - `cargo xtask eval-seg --model FILE --objects DIR [--geometric]` measures mask IoU and the
 //!   found rate on test-split room scenes, optionally beside the geometry-only alternative.
+//! - `cargo xtask verify-report --set NAME=CASES:RESULTS …` scores `incontext eval --cases`
+//!   results on view cases: acc@15°, ADD-S, verdict precision/recall, reliability diagram,
+//!   and fits the confidence calibration (`--fit-calibration`).
 //! - `cargo xtask seg-post --model FILE --out FILE [--pixel-threshold …]` rewrites a
 //!   segmentation checkpoint's post-processing settings (chosen on validation scenes).
 
@@ -39,6 +42,7 @@ mod data;
 mod pose;
 mod run;
 mod seg;
+mod verify_report;
 
 // Large element-wise tensor ops are ~10x slower with glibc's malloc (fresh pages each time).
 #[global_allocator]
@@ -81,6 +85,9 @@ enum Cmd {
     EvalSeg(seg::EvalArgs),
     /// Write a segmentation checkpoint's weights with new post-processing settings.
     SegPost(seg::PostArgs),
+    /// Score `incontext eval --cases` results of view cases: accuracy, ADD-S, verdict
+    /// precision and recall, reliability diagram, calibration fit.
+    VerifyReport(verify_report::VerifyReportArgs),
 }
 
 /// Which crate owns each benchmark file under `benches/`.
@@ -91,6 +98,7 @@ const BENCHES: &[(&str, &str)] = &[
     ("pose", "ic_pose"),
     ("sinkhorn", "ic_pose"),
     ("seg", "ic_seg"),
+    ("register", "incontext"),
 ];
 
 fn main() -> std::process::ExitCode {
@@ -127,6 +135,7 @@ fn main() -> std::process::ExitCode {
             init_tracing();
             seg::set_post(args)
         }
+        Cmd::VerifyReport(args) => verify_report::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

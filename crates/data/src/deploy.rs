@@ -349,6 +349,9 @@ pub enum SamplingProtocol {
     /// The paper's: [`ObjectSampleConfig::default`] (old numbers stay reproducible).
     #[default]
     Paper,
+    /// The paper's, with viewpoints uniform on the whole sphere
+    /// ([`ViewSampling::Sphere`]): what `../shared/notes/whole-sphere.md` measured.
+    Sphere,
     /// Every deployment switch on: [`ObjectSampleConfig::deployment`].
     Deployment,
 }
@@ -357,6 +360,7 @@ impl SamplingProtocol {
     pub fn as_str(&self) -> &'static str {
         match self {
             SamplingProtocol::Paper => "paper",
+            SamplingProtocol::Sphere => "sphere",
             SamplingProtocol::Deployment => "deployment",
         }
     }
@@ -365,6 +369,10 @@ impl SamplingProtocol {
     pub fn config(&self) -> ObjectSampleConfig {
         match self {
             SamplingProtocol::Paper => ObjectSampleConfig::default(),
+            SamplingProtocol::Sphere => ObjectSampleConfig {
+                viewpoints: ViewSampling::Sphere,
+                ..ObjectSampleConfig::default()
+            },
             SamplingProtocol::Deployment => ObjectSampleConfig::deployment(),
         }
     }
@@ -381,10 +389,11 @@ impl std::str::FromStr for SamplingProtocol {
     fn from_str(s: &str) -> Result<Self, DataError> {
         match s {
             "paper" => Ok(SamplingProtocol::Paper),
+            "sphere" => Ok(SamplingProtocol::Sphere),
             "deployment" => Ok(SamplingProtocol::Deployment),
             _ => Err(DataError::Config {
                 field: "protocol",
-                message: format!("expected paper or deployment, got {s:?}"),
+                message: format!("expected paper, sphere or deployment, got {s:?}"),
             }),
         }
     }

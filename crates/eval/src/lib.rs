@@ -7,6 +7,7 @@
 //!   mAP in the convention of Yi et al. 2018 (mean of the accuracies at step, 2·step, … up to
 //!   τ), area under the accuracy curve, medians, per-object breakdowns.
 //! - [`report`]: markdown tables and JSON; [`plot`]: accuracy-vs-threshold curves (PNG, SVG).
+//! - [`calibration`]: isotonic calibration of a confidence score, reliability diagrams.
 //! - [`cases`]: the scorer of exported registration cases — reads `gt.json` of case folders
 //!   and any number of JSONL result files (ours and Open3D's peers write the same lines) and
 //!   scores every method on every case (failures and missing lines count as 180° / ∞).
@@ -24,18 +25,20 @@
 //! assert_eq!(summary.rotation_accuracy[0], (5.0, 0.5)); // one of two within 5°, one failure
 //! ```
 
+pub mod calibration;
 pub mod cases;
 pub mod errors;
 pub mod metrics;
 pub mod plot;
 pub mod report;
 
+pub use calibration::{Calibration, ReliabilityBin, expected_calibration_error, reliability_bins};
 pub use errors::{
     PoseErrors, add, add_s, diameter, mspd, mssd, rotation_error_deg, translation_error,
     translation_error_sq,
 };
 pub use metrics::{Summary, accuracy, accuracy_curve, auc, map_yi2018, median, per_object};
-pub use plot::{Curve, plot_accuracy_curves, plot_accuracy_curves_titled};
+pub use plot::{Curve, plot_accuracy_curves, plot_accuracy_curves_titled, plot_xy};
 pub use report::{MethodResult, markdown_table, write_json};
 
 use std::path::PathBuf;

@@ -5,14 +5,15 @@
 use std::path::Path;
 use std::sync::Once;
 
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 
 use crate::{EvalError, MethodResult, accuracy};
 
 const FONT: &[u8] = include_bytes!("../assets/DejaVuSansMono.ttf");
-const FONT_NAME: &str = "ic-eval-mono";
+pub(crate) const FONT_NAME: &str = "ic-eval-mono";
 
-fn register_font() -> Result<(), EvalError> {
+pub(crate) fn register_font() -> Result<(), EvalError> {
     static ONCE: Once = Once::new();
     let mut result = Ok(());
     ONCE.call_once(|| {
@@ -20,6 +21,53 @@ fn register_font() -> Result<(), EvalError> {
             .map_err(|_| EvalError::Plot("the embedded font could not be loaded".into()));
     });
     result
+}
+
+/// Registers the font, then calls `$draw` (a closure taking the drawing area) with a PNG or an
+/// SVG drawing area of `$size` for `$path`, chosen by the file's extension; errors name the
+/// file. A macro, because the two backends are different types.
+macro_rules! draw_to_file {
+    ($path:expr, $size:expr, $draw:expr) => {{
+        let path: &std::path::Path = $path;
+        crate::plot::register_font()?;
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase);
+        match ext.as_deref() {
+            Some("png") => ($draw)(BitMapBackend::new(path, $size).into_drawing_area()),
+            Some("svg") => ($draw)(SVGBackend::new(path, $size).into_drawing_area()),
+            _ => Err(EvalError::Plot(
+                "the plot file must end in .png or .svg".into(),
+            )),
+        }
+        .map_err(|e| match e {
+            EvalError::Plot(m) => EvalError::Plot(format!("{}: {m}", path.display())),
+            other => other,
+        })
+    }};
+}
+pub(crate) use draw_to_file;
+
+/// Draws the legend of `chart` at `position` and writes `root` out.
+pub(crate) fn legend_and_present<'a, DB: DrawingBackend + 'a>(
+    chart: &mut ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    root: &DrawingArea<DB, plotters::coord::Shift>,
+    position: SeriesLabelPosition,
+) -> Result<(), EvalError>
+where
+    DB::ErrorType: 'static,
+{
+    let err = |e: DrawingAreaErrorKind<DB::ErrorType>| EvalError::Plot(e.to_string());
+    chart
+        .configure_series_labels()
+        .position(position)
+        .label_font((FONT_NAME, 13))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(err)?;
+    root.present().map_err(err)
 }
 
 /// Which error a curve shows.
@@ -51,36 +99,9 @@ pub fn plot_accuracy_curves_titled(
     max: f64,
     title: Option<&str>,
 ) -> Result<(), EvalError> {
-    register_font()?;
-    let ext = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase);
-    let size = (720, 480);
-    match ext.as_deref() {
-        Some("png") => draw(
-            BitMapBackend::new(path, size).into_drawing_area(),
-            results,
-            curve,
-            max,
-            title,
-        ),
-        Some("svg") => draw(
-            SVGBackend::new(path, size).into_drawing_area(),
-            results,
-            curve,
-            max,
-            title,
-        ),
-        _ => Err(EvalError::Plot(format!(
-            "{}: the plot file must end in .png or .svg",
-            path.display()
-        ))),
-    }
-    .map_err(|e| match e {
-        EvalError::Plot(m) => EvalError::Plot(format!("{}: {m}", path.display())),
-        other => other,
-    })
+    draw_to_file!(path, (720, 480), |root| draw(
+        root, results, curve, max, title
+    ))
 }
 
 fn draw<DB: DrawingBackend>(
@@ -139,16 +160,67 @@ where
                 PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2))
             });
     }
+    legend_and_present(&mut chart, &root, SeriesLabelPosition::LowerRight)
+}
+
+/// Draws lines through `(x, y)` points, one per series with its markers, to `path` (.png or
+/// .svg): e.g. accuracy against the number of hypotheses. The y axis spans [0, `y_max`].
+pub fn plot_xy(
+    path: &Path,
+    title: &str,
+    (x_label, y_label): (&str, &str),
+    y_max: f64,
+    series: &[(String, Vec<(f64, f64)>)],
+) -> Result<(), EvalError> {
+    let labels = (x_label, y_label);
+    draw_to_file!(path, (720, 480), |root| draw_xy(
+        root, title, labels, y_max, series
+    ))
+}
+
+fn draw_xy<DB: DrawingBackend>(
+    root: DrawingArea<DB, plotters::coord::Shift>,
+    title: &str,
+    (x_label, y_label): (&str, &str),
+    y_max: f64,
+    series: &[(String, Vec<(f64, f64)>)],
+) -> Result<(), EvalError>
+where
+    DB::ErrorType: 'static,
+{
+    let err = |e: DrawingAreaErrorKind<DB::ErrorType>| EvalError::Plot(e.to_string());
+    root.fill(&WHITE).map_err(err)?;
+    let xs = series.iter().flat_map(|s| s.1.iter().map(|p| p.0));
+    let x_max = xs.fold(1.0f64, f64::max) * 1.05;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, (FONT_NAME, 20))
+        .margin(16)
+        .x_label_area_size(44)
+        .y_label_area_size(56)
+        .build_cartesian_2d(0.0..x_max, 0.0..y_max)
+        .map_err(err)?;
     chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::LowerRight)
-        .label_font((FONT_NAME, 13))
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
+        .configure_mesh()
+        .x_desc(x_label)
+        .y_desc(y_label)
+        .label_style((FONT_NAME, 13))
+        .axis_desc_style((FONT_NAME, 15))
         .draw()
         .map_err(err)?;
-    root.present().map_err(err)?;
-    Ok(())
+    for (i, (name, points)) in series.iter().enumerate() {
+        let colour = Palette99::pick(i).to_rgba();
+        chart
+            .draw_series(LineSeries::new(points.clone(), colour.stroke_width(2)))
+            .map_err(err)?
+            .label(name.clone())
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2))
+            });
+        chart
+            .draw_series(points.iter().map(|&p| Circle::new(p, 4, colour.filled())))
+            .map_err(err)?;
+    }
+    legend_and_present(&mut chart, &root, SeriesLabelPosition::LowerRight)
 }
 
 #[cfg(test)]
@@ -186,6 +258,20 @@ mod tests {
         );
         // The two curves and their two legend marks are the only 2-px strokes.
         assert_eq!(text.matches(r#"stroke-width="2""#).count(), 4, "{text}");
+        let xy = dir.path().join("xy.svg");
+        plot_xy(
+            &xy,
+            "accuracy against K",
+            ("K", "accuracy"),
+            1.0,
+            &[("set".into(), vec![(1.0, 0.2), (24.0, 0.8)])],
+        )
+        .unwrap();
+        assert!(
+            std::fs::read_to_string(&xy)
+                .unwrap()
+                .contains("accuracy against K")
+        );
         if let Ok(keep) = std::env::var("IC_EVAL_KEEP_PLOT") {
             plot_accuracy_curves(Path::new(&keep), &results, Curve::Rotation, 30.0).unwrap();
         }

@@ -268,7 +268,7 @@ pub fn summary_text(report: &Value) -> String {
     ));
     let t = &report["timings_ms"];
     s.push_str(&format!(
-        "timings (ms): scene {:.0}, write inputs {:.0}, load {:.0}, networks {:.0}, model points {:.0}, segmentation {:.0} + {:.0}, observed points {:.0}, pose network {:.0}, ICP {:.0}, registration {:.0}, outputs {:.0}, total {:.0}\n",
+        "timings (ms): scene {:.0}, write inputs {:.0}, load {:.0}, networks {:.0}, model points {:.0}, segmentation {:.0} + {:.0}, observed points {:.0}, pose network {:.0}, ranking {:.0}, ICP {:.0}, verification {:.0}, registration {:.0}, outputs {:.0}, total {:.0}\n",
         f(&t["scene"]),
         f(&t["write_inputs"]),
         f(&t["load_inputs"]),
@@ -278,7 +278,9 @@ pub fn summary_text(report: &Value) -> String {
         f(&t["segmentation_post"]),
         f(&t["observed_points"]),
         f(&t["pose_network"]),
+        f(&t["ranking"]),
         f(&t["icp"]),
+        f(&t["verification"]),
         f(&t["registration"]),
         f(&t["outputs"]),
         f(&t["demo_total"]),

@@ -9,7 +9,8 @@
 //!   thresholds); ADD-S is divided by the object's diameter.
 //! - `--cases DIR`: the registration cases of `cargo xtask export-cases`. Writes one JSON line
 //!   per case and method, `{"case", "method", "R", "t", "seconds", "ok", "error"}` (the format
-//!   of `benches/peers/open3d_peers.py`): `target ≈ R·source + t` in normalised units;
+//!   of `benches/peers/open3d_peers.py`), then, when a pose was found, its `confidence` and
+//!   `verdict` (and `details` with `--details`): `target ≈ R·source + t` in normalised units;
 //!   `seconds` covers everything after reading the files (segmentation of `depth.png`
 //!   included for room cases). `gt.json` is never read.
 
@@ -80,6 +81,14 @@ pub struct EvalArgs {
     /// Hypotheses of the `-verify` methods refined by ICP and verified (see `register`).
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=60))]
     pub verify_top: u32,
+    /// Rotated copies of the `-verify` methods that go on through the transformer (see
+    /// `register`); default: the pipeline's.
+    #[arg(long)]
+    pub sweep_keep: Option<usize>,
+    /// Sampled poses per rotated copy in the `-verify` methods (see `register`); default: the
+    /// pipeline's.
+    #[arg(long)]
+    pub sampled_hypotheses: Option<usize>,
 }
 
 impl EvalArgs {
@@ -91,6 +100,12 @@ impl EvalArgs {
             sweep_points: self
                 .sweep_points
                 .unwrap_or(PipelineOptions::default().sweep_points),
+            sweep_keep: self
+                .sweep_keep
+                .unwrap_or(PipelineOptions::default().sweep_keep),
+            sampled_hypotheses: self
+                .sampled_hypotheses
+                .unwrap_or(PipelineOptions::default().sampled_hypotheses),
             ..PipelineOptions::default()
         }
     }
@@ -379,6 +394,11 @@ struct CaseLine {
     seconds: f64,
     ok: bool,
     error: Option<String>,
+    /// The pose's confidence in [0, 1] and its verdict, when a pose was found.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    confidence: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    verdict: Option<crate::pipeline::Verdict>,
     #[serde(skip_serializing_if = "Option::is_none")]
     details: Option<Value>,
 }
@@ -444,6 +464,8 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
                 seconds: 0.0,
                 ok: false,
                 error: None,
+                confidence: None,
+                verdict: None,
                 details: None,
             };
             match &read {
@@ -460,6 +482,8 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
                             rec.r = Some(p.rotation_row_major());
                             rec.t = Some([p.translation.x, p.translation.y, p.translation.z]);
                             rec.ok = true;
+                            rec.confidence = Some(r.confidence);
+                            rec.verdict = Some(r.verdict);
                             seconds.entry(m.name.clone()).or_default().push(s);
                             if args.details {
                                 rec.details = Some(json!({
@@ -471,6 +495,9 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
                                     "inlier_count": r.inlier_count,
                                     "icp": r.icp,
                                     "verification": r.verification,
+                                    "rival_score": r.rival_score,
+                                    "evidence": r.evidence,
+                                    "verified": r.verified.iter().map(|h| json!({"score": h.score, "R": h.pose_normalised.rotation_row_major(), "t": h.pose_normalised.translation.to_array()})).collect::<Vec<_>>(),
                                     "stage_seconds": r.seconds,
                                 }));
                             }

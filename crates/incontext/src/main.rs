@@ -10,6 +10,12 @@ use clap::Parser;
 use incontext::cli::{Cli, run};
 use serde_json::json;
 
+// The networks' large tensors are allocated and freed on every pass: glibc's malloc returns
+// their pages to the system each time, mimalloc keeps them (the 24-copy forward pass of
+// `register` measured 0.24–0.27 s with glibc's malloc, 0.21 s with mimalloc, 2 threads).
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     // SAFETY: first thing in main, before any other thread exists.

@@ -2,10 +2,15 @@
 //!
 //! ```text
 //! depth (model units) ÷ scale ──seg net──► mask ──erode 3×3, back-project, crop 1.2──►
-//!   voxelise 0.0354 ──sample N──► pose network (with M model points) ──► one-shot pose
-//!   ──point-to-plane ICP (all object voxels onto the dense model points)──► pose
+//!   voxelise 0.0354 ──sample N──► pose network on 24 rotated copies of M model points
+//!   (one sweep) ──► per copy: weighted Procrustes + 2 poses sampled from its matches
+//!   ──rank by point-distance confidence──► best 8: ICP (≤ 1024 voxels) + render-and-compare
+//!   ──► best score: ICP again (≤ 4096 voxels) ──► evidence → calibrated confidence, verdict
 //!   ──Normalisation::pose_to_original──► pose in the model's own units
 //! ```
+//!
+//! With `rotations = 1` (the paper's pipeline): one pass of the network, weighted Procrustes,
+//! ICP of all object voxels onto the dense model points, the point-distance confidence.
 //!
 //! The networks work in normalised object units: the mesh is normalised to [-1, 1] on its
 //! longest side (`Normalisation { centre, scale }`) and the depth map, which must be in the
@@ -45,14 +50,55 @@ pub const CONFIDENCE_OK: f64 = 0.6;
 /// The confidence below which the object counts as not found ([`Verdict::NotFound`]).
 pub const CONFIDENCE_FOUND: f64 = 0.25;
 
-/// The render-and-compare score from which a verified pose is `ok` (on whole-sphere views of
-/// unseen real objects: 98 % of such poses right, 91 % of right poses `ok`;
-/// `docs/decisions.md`).
-pub const VERIFIED_OK: f64 = 0.5;
+/// The calibrated confidence (the probability that the pose is right, see
+/// [`verified_calibration`]) from which a verified pose is `ok` (`docs/decisions.md`).
+pub const VERIFIED_OK: f64 = 0.9;
 
-/// The render-and-compare score below which a verified pose counts as not found (no right pose
-/// scored below it on those views' wrong ones; a few right ones do, under heavy noise).
+/// The raw render-and-compare score below which a verified pose counts as not found: the
+/// model at its best pose explains almost none of the object's depth.
 pub const VERIFIED_FOUND: f64 = 0.05;
+
+/// The isotonic calibration of the render-and-compare score, `models/verify-calibration.json`
+/// (fitted by `cargo xtask verify-report --fit-calibration` on validation views of unseen
+/// objects, see `models/README.md`): the probability that a verified pose is right (ADD-S
+/// below 0.1 of the diameter) given its score. Embedded in the binary.
+pub fn verified_calibration() -> &'static ic_eval::Calibration {
+    static CALIBRATION: std::sync::OnceLock<ic_eval::Calibration> = std::sync::OnceLock::new();
+    CALIBRATION.get_or_init(|| {
+        #[derive(serde::Deserialize)]
+        struct File {
+            knots: Vec<(f64, f64)>,
+        }
+        let text = include_str!("../../../models/verify-calibration.json");
+        let file: File = serde_json::from_str(text).expect("models/verify-calibration.json parses");
+        ic_eval::Calibration::new(file.knots)
+            .expect("models/verify-calibration.json is a calibration")
+    })
+}
+
+/// The winner of the verification is refined again on more object voxels; that finer fit is
+/// kept unless its render-and-compare score drops by more than this.
+pub const FINE_REFINE_SLACK: f64 = 0.02;
+
+/// Two poses are equivalent (the same up to the object's symmetry, as far as the model can
+/// tell) when their ADD-S distance is below this fraction of the object's diameter.
+pub const EQUIVALENT_ADD_S: f64 = 0.1;
+
+/// The evidence a verified pose rests on, in [0, 1]: its render-and-compare `score`, capped by
+/// four times its margin over the best pose that is not equivalent to it (`rival`). Measured on
+/// validation views (`docs/decisions.md`): without the cap, 3 % of poses that scored above 0.9
+/// were wrong — views that another, different pose explains as well.
+pub fn evidence(score: f64, rival: f64) -> f64 {
+    score.min(4.0 * (score - rival)).clamp(0.0, 1.0)
+}
+
+/// Object voxels each verified hypothesis is refined on by ICP (the winner is refined again
+/// on up to `icp_max_points`).
+pub const VERIFY_ICP_POINTS: usize = 1024;
+
+/// Object voxels (at most) on which the one-shot hypotheses are ranked by the point-distance
+/// confidence before verification.
+pub const RANKING_POINTS: usize = 512;
 
 /// A known object, ready to be registered: its normalised mesh (when it came from one), how it
 /// was normalised, and its dense visible-surface points with normals (normalised units).
@@ -62,6 +108,9 @@ pub struct Object {
     pub points: Vec<Vec3>,
     pub normals: Vec<Vec3>,
     tree: KdTree,
+    /// The largest distance between two of `points` (normalised units; from at most 512 of
+    /// them, evenly strided).
+    pub diameter: f64,
     /// Seconds spent sampling the points and normals.
     pub seconds: f64,
 }
@@ -77,6 +126,20 @@ impl std::fmt::Debug for Object {
 }
 
 impl Object {
+    /// ADD-S between the model at poses `a` and `b` (normalised units): the mean distance from
+    /// each of 256 of the object's points (evenly strided) at `a` to the nearest point at `b`.
+    pub fn add_s(&self, a: &Pose, b: &Pose) -> f64 {
+        let step = self.points.len().div_ceil(256).max(1);
+        let b_inv = b.inverse();
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for p in self.points.iter().step_by(step) {
+            let q = b_inv.apply_f32(a.apply_f32(*p));
+            sum += self.tree.nearest(q).distance as f64;
+            n += 1;
+        }
+        sum / n.max(1) as f64
+    }
+
     /// Normalises `mesh` (in its own units) and samples its visible surface (seeded).
     pub fn from_mesh(mut mesh: Mesh, seed: u64) -> Result<Object> {
         let clock = Instant::now();
@@ -151,12 +214,16 @@ impl Object {
         normalisation: Normalisation,
     ) -> Result<Object> {
         let tree = KdTree::new(&points)?;
+        let step = points.len().div_ceil(512).max(1);
+        let some: Vec<Vec3> = points.iter().step_by(step).copied().collect();
+        let diameter = ic_eval::diameter(&some);
         Ok(Object {
             mesh: None,
             normalisation,
             points,
             normals,
             tree,
+            diameter,
             seconds: 0.0,
         })
     }
@@ -167,19 +234,23 @@ fn pca_normals(points: &[Vec3]) -> Result<Vec<Vec3>> {
     Ok(estimate_normals(points, 10, centre + Vec3::splat(100.0))?)
 }
 
-/// How far a registration can be trusted, from its confidence (the fraction of the observed
-/// object voxels the aligned model explains) and the thresholds of [`PipelineOptions`].
+/// How far a registration can be trusted. Verified registrations (`rotations > 1`, the
+/// default): from the confidence, the calibrated probability that the pose is right, and the
+/// raw render-and-compare score ([`Verdict::of_verified`]). Unverified ones: from the
+/// point-distance confidence ([`Verdict::of`]). Thresholds in [`PipelineOptions`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Verdict {
-    /// Confidence ≥ `confidence_ok`: the pose explains the object; use it.
+    /// The pose is right with a probability of at least `verified_ok` (unverified: it explains
+    /// at least `confidence_ok` of the object points); use it.
     Ok,
-    /// `confidence_found` ≤ confidence < `confidence_ok`: a pose was found but it may be wrong
-    /// (a symmetric flip, the wrong side, or another object); check it (`--overlay`) or try
-    /// more hypotheses.
+    /// A pose was found but it may be wrong (a symmetric flip, the wrong side, another object,
+    /// a view that other poses explain as well); check it (`--overlay`), look from another
+    /// side, or try more hypotheses.
     Uncertain,
-    /// Confidence < `confidence_found`: the best pose explains almost nothing; the object is
-    /// not in view, or the mesh or its units are wrong.
+    /// The best pose explains almost nothing (render-and-compare score below
+    /// `verified_found`; unverified: confidence below `confidence_found`): the object is not
+    /// in view, or the mesh or its units are wrong.
     NotFound,
 }
 
@@ -190,9 +261,17 @@ impl Verdict {
         Verdict::by(confidence, options.confidence_ok, options.confidence_found)
     }
 
-    /// The verdict of a render-and-compare score in [0, 1] (`verified_ok`, `verified_found`).
-    pub fn of_verified(score: f64, options: &PipelineOptions) -> Verdict {
-        Verdict::by(score, options.verified_ok, options.verified_found)
+    /// The verdict of a verified pose: `not_found` when its raw render-and-compare `score` is
+    /// below `verified_found`, else `ok` when its calibrated `confidence` reaches
+    /// `verified_ok`, else `uncertain`.
+    pub fn of_verified(score: f64, confidence: f64, options: &PipelineOptions) -> Verdict {
+        if score < options.verified_found {
+            Verdict::NotFound
+        } else if confidence >= options.verified_ok {
+            Verdict::Ok
+        } else {
+            Verdict::Uncertain
+        }
     }
 
     fn by(value: f64, ok: f64, found: f64) -> Verdict {
@@ -236,8 +315,8 @@ pub struct PipelineOptions {
     /// from `confidence_found`, `not_found` below (measured in `docs/decisions.md`).
     pub confidence_ok: f64,
     pub confidence_found: f64,
-    /// The same thresholds on the render-and-compare score, when hypotheses are verified
-    /// (`rotations > 1`).
+    /// When hypotheses are verified (`rotations > 1`): `ok` from a calibrated confidence of
+    /// `verified_ok`, `not_found` below a raw render-and-compare score of `verified_found`.
     pub verified_ok: f64,
     pub verified_found: f64,
     /// Rotation hypotheses (1, 12, 24 or 60; see [`crate::verify::rotation_set`]): the model
@@ -248,11 +327,18 @@ pub struct PipelineOptions {
     /// ICP and scored by render-and-compare when `rotations > 1`.
     pub verify_top: usize,
     /// Model points of the rotation sweep (the observed points are ¾ of it); 0 = the
-    /// network's own M and N. Fewer points make the sweep faster; the verified hypotheses are
-    /// refined by ICP on every object voxel anyway. Default 0: 192 was as accurate as 384 on
-    /// 102 paper-protocol room and object-alone views (0.30 s instead of 0.63 s with 24
-    /// rotations), but lost the pose of a close-up object entirely (`docs/decisions.md`).
+    /// network's own M and N (384 and 288). Fewer points make the sweep faster; the verified
+    /// hypotheses are refined by ICP on the object voxels anyway. Default 320: as accurate as
+    /// 384 on 600 views of three sets and ≈ 40 ms faster with 24 rotations; 192 lost the
+    /// pose of a close-up object entirely (`docs/decisions.md`).
     pub sweep_points: usize,
+    /// Per rotated copy, poses of minimal sets of three correspondences drawn from the
+    /// network's soft assignment ([`ic_pose::sample_poses`]) that join the copy's weighted
+    /// Procrustes pose as hypotheses; 0 = none.
+    pub sampled_hypotheses: usize,
+    /// Rotated copies that go on through the transformer after the DGCNN (the unrotated copy
+    /// and those whose features best match the observed ones); 0 = all.
+    pub sweep_keep: usize,
 }
 
 impl Default for PipelineOptions {
@@ -271,7 +357,9 @@ impl Default for PipelineOptions {
             verified_found: VERIFIED_FOUND,
             rotations: 1,
             verify_top: 8,
-            sweep_points: 0,
+            sweep_points: 320,
+            sampled_hypotheses: 2,
+            sweep_keep: 0,
         }
     }
 }
@@ -284,6 +372,8 @@ pub struct StageSeconds {
     /// Erosion, back-projection, crop, voxelising, sampling.
     pub observed_points: f64,
     pub pose_network: f64,
+    /// Ranking the one-shot hypotheses by the point-distance confidence.
+    pub ranking: f64,
     pub icp: f64,
     /// Render-and-compare of the verified hypotheses.
     pub verification: f64,
@@ -319,13 +409,23 @@ pub struct Registration {
     pub pose_normalised: Pose,
     /// The network's one-shot estimate (normalised units), before refinement.
     pub one_shot_normalised: Pose,
-    /// Fraction of the observed object voxels within [`MATCH_DISTANCE`] (normalised) of the
-    /// model at the final pose, in [0, 1].
+    /// In [0, 1]. Verified registrations: the probability that the pose is right (ADD-S below
+    /// 0.1 of the diameter), the calibration ([`verified_calibration`]) of the [`evidence`].
+    /// Unverified: the fraction of the observed object voxels within [`MATCH_DISTANCE`]
+    /// (normalised) of the model at the final pose.
     pub confidence: f64,
     /// What the confidence says of the pose.
     pub verdict: Verdict,
     /// The render-and-compare score of the pose, when hypotheses were verified.
     pub verification: Option<crate::verify::Score>,
+    /// Every verified hypothesis in the order they were ranked (the first is the network's
+    /// unrotated estimate): its render-and-compare score and refined pose (normalised units).
+    pub verified: Vec<VerifiedHypothesis>,
+    /// The best score of a verified pose that is not equivalent to the chosen one (ADD-S
+    /// between them ≥ 0.1·diameter), 0 when there is none.
+    pub rival_score: Option<f64>,
+    /// What the confidence is calibrated from: [`evidence`] of the score and the rival.
+    pub evidence: Option<f64>,
     /// One-shot hypotheses made, and how many were refined and verified.
     pub hypotheses_made: usize,
     pub hypotheses_verified: usize,
@@ -344,6 +444,14 @@ pub struct Registration {
     /// The object mask used (before erosion), for depth inputs.
     #[serde(skip)]
     pub mask: Option<Mask>,
+}
+
+/// One verified hypothesis of [`Registration::verified`].
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct VerifiedHypothesis {
+    pub score: f64,
+    /// Model → camera, normalised units.
+    pub pose_normalised: Pose,
 }
 
 /// The networks and settings of the pipeline.
@@ -631,11 +739,14 @@ impl Pipeline {
             pose_normalised: best.pose,
             one_shot_normalised: best.one_shot,
             confidence,
-            verdict: match verification {
-                Some(_) => Verdict::of_verified(confidence, &self.options),
+            verdict: match &verification {
+                Some(score) => Verdict::of_verified(score.score, confidence, &self.options),
                 None => Verdict::of(confidence, &self.options),
             },
             verification,
+            verified: Vec::new(),
+            rival_score: None,
+            evidence: None,
             hypotheses_made: made,
             hypotheses_verified: verified,
             segmentation: None,
@@ -664,7 +775,7 @@ impl Pipeline {
         mut seconds: StageSeconds,
         clock: Instant,
     ) -> Result<Registration> {
-        use crate::verify::{ModelShape, rotate_points, rotation_set, unrotate};
+        use crate::verify::{ModelShape, rotation_set};
         let rotations = rotation_set(self.options.rotations).map_err(CliError::input)?;
         let (m, n) = match self.options.sweep_points {
             0 => self.point_counts(),
@@ -674,22 +785,49 @@ impl Pipeline {
         for h in 0..self.options.hypotheses.max(1) {
             let t = Instant::now();
             let (x, y, _) = draw_points(object, &voxels, (m, n), hypothesis_seed(seed, h))?;
-            let copies: Vec<Vec<Vec3>> = rotations.iter().map(|r| rotate_points(&x, r)).collect();
             seconds.observed_points += t.elapsed().as_secs_f64();
             let t = Instant::now();
-            let pairs: Vec<(&[Vec3], &[Vec3])> = copies
-                .iter()
-                .map(|c| (c.as_slice(), y.as_slice()))
-                .collect();
-            let estimates = self.pose.estimator.estimate_batch(&pairs)?;
+            let sampled = self.options.sampled_hypotheses;
+            let sweep = ic_pose::SweepOptions {
+                keep: match self.options.sweep_keep {
+                    0 => rotations.len(),
+                    k => k,
+                },
+                sampling: (sampled > 0).then_some(ic_pose::SamplingOptions {
+                    keep: sampled,
+                    ..ic_pose::SamplingOptions::default()
+                }),
+                seed: ic_data::mix_seed(hypothesis_seed(seed, h), 0x5a3d),
+            };
+            let estimates = self
+                .pose
+                .estimator
+                .estimate_rotations(&x, &rotations, &y, &sweep)?;
             seconds.pose_network += t.elapsed().as_secs_f64();
+            let t = Instant::now();
             let mut first_error = None;
-            for (e, r) in estimates.into_iter().zip(&rotations) {
+            for e in estimates {
                 // A copy whose correspondences admit no pose is one hypothesis fewer.
                 match e {
-                    Ok(e) => {
-                        let pose = unrotate(&e.pose, r);
-                        candidates.push((self.explained(object, &voxels, &pose), pose, e));
+                    Ok(c) => {
+                        let e = c.estimate;
+                        candidates.push((
+                            self.explained_rough(object, &voxels, &e.pose),
+                            e.pose,
+                            e,
+                        ));
+                        for s in c.sampled {
+                            let e = ic_pose::PoseEstimate {
+                                pose: s.pose,
+                                inlier_count: s.inliers,
+                                ..e
+                            };
+                            candidates.push((
+                                self.explained_rough(object, &voxels, &s.pose),
+                                s.pose,
+                                e,
+                            ));
+                        }
                     }
                     Err(err) => {
                         tracing::debug!("a rotated copy gave no pose: {err}");
@@ -697,6 +835,7 @@ impl Pipeline {
                     }
                 }
             }
+            seconds.ranking += t.elapsed().as_secs_f64();
             if candidates.is_empty()
                 && let Some(err) = first_error
             {
@@ -715,10 +854,19 @@ impl Pipeline {
         };
         let mut rng = ChaCha8Rng::seed_from_u64(ic_data::mix_seed(seed, 0x5e1f));
         let target = self.icp_target(object, &mut seconds)?;
-        let mut best: Option<(crate::verify::Score, Hypothesis)> = None;
+        let mut verified: Vec<(crate::verify::Score, Hypothesis)> = Vec::new();
+        // The hypotheses are refined on at most VERIFY_ICP_POINTS voxels; the winner again on
+        // up to `icp_max_points` below.
+        let coarse = VERIFY_ICP_POINTS.min(self.options.icp_max_points);
         for (_, one_shot, estimate) in candidates.iter().take(self.options.verify_top.max(1)) {
-            let (pose, icp) =
-                self.refine(target.as_ref(), &voxels, one_shot, &mut rng, &mut seconds)?;
+            let (pose, icp) = self.refine_with(
+                target.as_ref(),
+                &voxels,
+                one_shot,
+                coarse,
+                &mut rng,
+                &mut seconds,
+            )?;
             let t = Instant::now();
             let score = observation.score(&shape, &pose);
             seconds.verification += t.elapsed().as_secs_f64();
@@ -730,22 +878,73 @@ impl Pipeline {
                 assignment_confidence: estimate.assignment_confidence,
                 icp,
             };
-            if best.as_ref().is_none_or(|(b, _)| score.score > b.score) {
-                best = Some((score, hyp));
+            verified.push((score, hyp));
+        }
+        // The best score wins; on an exact tie, the first in the order above (the network's own
+        // unrotated estimate, then the most consistent hypotheses). Widening the tie to
+        // near-equal scores was measured and lost accuracy (`docs/decisions.md`).
+        let winner =
+            verified.iter().enumerate().fold(
+                0,
+                |w, (i, (s, _))| if s.score > verified[w].0.score { i } else { w },
+            );
+        let listed: Vec<VerifiedHypothesis> = verified
+            .iter()
+            .map(|(s, h)| VerifiedHypothesis {
+                score: s.score,
+                pose_normalised: h.pose,
+            })
+            .collect();
+        let (mut score, mut best) = verified.swap_remove(winner);
+        if voxels.len() > coarse {
+            let (pose, icp) =
+                self.refine(target.as_ref(), &voxels, &best.pose, &mut rng, &mut seconds)?;
+            let t = Instant::now();
+            let fine = observation.score(&shape, &pose);
+            seconds.verification += t.elapsed().as_secs_f64();
+            // The finer fit is kept unless it explains the depth clearly worse.
+            if fine.score >= score.score - FINE_REFINE_SLACK {
+                best.pose = pose;
+                best.icp = icp;
+                best.confidence = self.explained(object, &voxels, &pose);
+                score = fine;
             }
         }
-        let (score, best) = best.expect("at least one hypothesis");
         seconds.total = clock.elapsed().as_secs_f64();
-        let verified = self.options.verify_top.max(1).min(made);
-        Ok(self.registration(
+        let checked = self.options.verify_top.max(1).min(made);
+        // Ambiguity: the best score among the verified poses that are not equivalent to the
+        // winner (ADD-S between them of at least 0.1 of the diameter). A view that another,
+        // different pose explains about as well cannot be trusted, however well it is explained.
+        let rival = listed
+            .iter()
+            .filter(|h| {
+                object.add_s(&h.pose_normalised, &best.pose) >= EQUIVALENT_ADD_S * object.diameter
+            })
+            .map(|h| h.score)
+            .fold(0.0f64, f64::max);
+        let evidence = evidence(score.score, rival);
+        let confidence = verified_calibration().apply(evidence);
+        let mut r = self.registration(
             object,
             best,
-            score.score,
+            confidence,
             Some(score),
-            (made, verified),
+            (made, checked),
             voxels,
             seconds,
-        ))
+        );
+        r.verified = listed;
+        r.rival_score = Some(rival);
+        r.evidence = Some(evidence);
+        Ok(r)
+    }
+
+    /// [`Pipeline::explained`] on at most [`RANKING_POINTS`] of the voxels, evenly strided:
+    /// what ranks the one-shot hypotheses before verification.
+    fn explained_rough(&self, object: &Object, voxels: &[Vec3], pose: &Pose) -> f64 {
+        let step = voxels.len().div_ceil(RANKING_POINTS).max(1);
+        let some: Vec<Vec3> = voxels.iter().step_by(step).copied().collect();
+        self.explained(object, &some, pose)
     }
 
     /// Fraction of `voxels` (camera frame) within [`MATCH_DISTANCE`] of the model's dense
@@ -787,12 +986,33 @@ impl Pipeline {
         rng: &mut ChaCha8Rng,
         seconds: &mut StageSeconds,
     ) -> Result<(Pose, Option<IcpSummary>)> {
+        self.refine_with(
+            target,
+            voxels,
+            one_shot,
+            self.options.icp_max_points,
+            rng,
+            seconds,
+        )
+    }
+
+    /// [`Pipeline::refine`] with at most `max_points` object voxels.
+    fn refine_with(
+        &self,
+        target: Option<&IcpTarget>,
+        voxels: &[Vec3],
+        one_shot: &Pose,
+        max_points: usize,
+        rng: &mut ChaCha8Rng,
+        seconds: &mut StageSeconds,
+    ) -> Result<(Pose, Option<IcpSummary>)> {
         match target {
             None => Ok((*one_shot, None)),
             Some(target) => {
                 let t = Instant::now();
-                let source: Vec<Vec3> = if voxels.len() > self.options.icp_max_points {
-                    random_subsample_indices(voxels.len(), self.options.icp_max_points, rng)?
+                let max_points = max_points.max(3);
+                let source: Vec<Vec3> = if voxels.len() > max_points {
+                    random_subsample_indices(voxels.len(), max_points, rng)?
                         .into_iter()
                         .map(|i| voxels[i])
                         .collect()
@@ -897,5 +1117,54 @@ fn check_units(voxels: &[Vec3]) {
             observed_extent = extent,
             "the observed object spans {extent:.3} normalised units (the model spans 2): are the mesh and the depth map in the same units? (--model-unit-mm)"
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ic_geometry::glam::DVec3;
+
+    #[test]
+    fn evidence_is_capped_by_the_margin_over_a_different_pose() {
+        // Unambiguous: no rival, the score itself.
+        assert_eq!(evidence(0.9, 0.0), 0.9);
+        // A different pose explains the view almost as well: little evidence.
+        assert!((evidence(0.95, 0.9) - 0.2).abs() < 1e-12);
+        // A clear margin leaves the score.
+        assert_eq!(evidence(0.8, 0.3), 0.8);
+        // Never negative, never above 1.
+        assert_eq!(evidence(0.5, 0.6), 0.0);
+        assert_eq!(evidence(1.5, 0.0), 1.0);
+        // The calibration is monotone in the evidence and a probability.
+        let c = verified_calibration();
+        let mut last = 0.0;
+        for i in 0..=100 {
+            let p = c.apply(i as f64 / 100.0);
+            assert!((0.0..=1.0).contains(&p) && p >= last);
+            last = p;
+        }
+    }
+
+    #[test]
+    fn add_s_between_poses_is_zero_for_the_same_pose_and_grows_with_a_turn() {
+        let mut mesh = ic_geometry::shapes::random_object(5);
+        mesh.normalise().unwrap();
+        let object = Object::from_mesh(mesh, 1).unwrap();
+        assert!(
+            object.diameter > 1.0 && object.diameter < 4.0,
+            "{}",
+            object.diameter
+        );
+        let a = Pose::from_translation(DVec3::new(0.1, 0.0, 3.0));
+        assert!(object.add_s(&a, &a) < 1e-6);
+        let turned = a.compose(&Pose::from_axis_angle(DVec3::X, 1.0, DVec3::ZERO));
+        assert!(object.add_s(&a, &turned) > 0.02);
+        // A shift bounds ADD-S from above (every point's own copy is that far), and a shift of
+        // the object's size makes the poses different (not equivalent).
+        let moved = Pose::from_translation(DVec3::new(0.1 + object.diameter, 0.0, 3.0));
+        let d = object.add_s(&a, &moved);
+        assert!(d <= object.diameter + 1e-4, "{d}");
+        assert!(d > EQUIVALENT_ADD_S * object.diameter, "{d}");
     }
 }

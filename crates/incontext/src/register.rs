@@ -15,17 +15,24 @@ use crate::pipeline::{Object, Pipeline, PipelineOptions, Registration, Verdict};
 
 /// The error of a registration whose verdict is `not_found` (exit code 3).
 pub fn not_found_error(r: &Registration, options: &PipelineOptions) -> crate::CliError {
-    crate::CliError::not_found(format!(
-        "object not found: the best pose explains {:.0} % of the object \
-         (confidence {:.2}, below {:.2}); is this the right mesh, in the depth map's units \
-         (--model-unit-mm), and is the object in view?",
-        100.0 * r.confidence,
-        r.confidence,
-        if r.verification.is_some() {
+    let why = match &r.verification {
+        Some(v) => format!(
+            "the model rendered at the best pose agrees with {:.0} % of the object's depth \
+             (render-and-compare score {:.2}, below {:.2})",
+            100.0 * v.score,
+            v.score,
             options.verified_found
-        } else {
+        ),
+        None => format!(
+            "the best pose explains {:.0} % of the object (confidence {:.2}, below {:.2})",
+            100.0 * r.confidence,
+            r.confidence,
             options.confidence_found
-        }
+        ),
+    };
+    crate::CliError::not_found(format!(
+        "object not found: {why}; is this the right mesh, in the depth map's units \
+         (--model-unit-mm), and is the object in view?"
     ))
 }
 
@@ -93,6 +100,15 @@ pub struct NetworkArgs {
     /// object points they explain) are refined by ICP and verified by render-and-compare.
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=60))]
     pub verify_top: u32,
+    /// With --rotations: how many rotated copies go on through the network's transformer after
+    /// its first stage (the unrotated copy and those whose point features best match the
+    /// observed ones); 0 = all. Fewer is faster.
+    #[arg(long, default_value_t = PipelineOptions::default().sweep_keep)]
+    pub sweep_keep: usize,
+    /// With --rotations: poses per rotated copy drawn as minimal sets of three of its
+    /// correspondences (seeded RANSAC over the soft assignment), added to the hypotheses.
+    #[arg(long, default_value_t = PipelineOptions::default().sampled_hypotheses)]
+    pub sampled_hypotheses: usize,
 }
 
 pub fn parse_rotations(s: &str) -> std::result::Result<usize, String> {
@@ -135,6 +151,8 @@ impl NetworkArgs {
             hypotheses: self.hypotheses as usize,
             rotations: self.rotations,
             verify_top: self.verify_top as usize,
+            sweep_keep: self.sweep_keep,
+            sampled_hypotheses: self.sampled_hypotheses,
             ..PipelineOptions::default()
         };
         Pipeline::load(
@@ -303,6 +321,8 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
             "assignment_confidence": registration.assignment_confidence,
             "icp": registration.icp,
             "verification": registration.verification,
+            "rival_score": registration.rival_score,
+            "evidence": registration.evidence,
             "hypotheses_made": registration.hypotheses_made,
             "hypotheses_verified": registration.hypotheses_verified,
             "one_shot_normalised": pose_json(&registration.one_shot_normalised),
@@ -316,6 +336,7 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
             "segmentation_post": ms(s.segmentation_post),
             "observed_points": ms(s.observed_points),
             "pose_network": ms(s.pose_network),
+            "ranking": ms(s.ranking),
             "icp": ms(s.icp),
             "verification": ms(s.verification),
             "registration": ms(s.total),
@@ -388,7 +409,7 @@ pub fn summary_text(report: &Value) -> String {
     let t = &report["timings_ms"];
     let f = |k: &str| t[k].as_f64().unwrap_or(f64::NAN);
     s.push_str(&format!(
-        "timings (ms): load {:.0}, networks {:.0}, model points {:.0}, segmentation {:.0} + {:.0}, observed points {:.0}, pose network {:.0}, ICP {:.0}, registration {:.0}, total {:.0}\n",
+        "timings (ms): load {:.0}, networks {:.0}, model points {:.0}, segmentation {:.0} + {:.0}, observed points {:.0}, pose network {:.0}, ranking {:.0}, ICP {:.0}, verification {:.0}, registration {:.0}, total {:.0}\n",
         f("load_inputs"),
         f("load_networks"),
         f("model_points"),
@@ -396,7 +417,9 @@ pub fn summary_text(report: &Value) -> String {
         f("segmentation_post"),
         f("observed_points"),
         f("pose_network"),
+        f("ranking"),
         f("icp"),
+        f("verification"),
         f("registration"),
         f("total"),
     ));

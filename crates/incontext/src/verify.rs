@@ -35,6 +35,10 @@ pub fn rotation_set(count: usize) -> Result<Vec<Pose>, String> {
     ic_geometry::rotations::rotation_group(count).map_err(|e| e.to_string())
 }
 
+/// Pixels around each rendered pixel (of the crop) whose observed depth may explain it (see
+/// `Observation::compare`).
+pub const NEIGHBOURHOOD: usize = 1;
+
 /// Depth agreement tolerance at camera distance `z` (normalised units) for a surface of the
 /// given roughness: 0.03 (1.5 % of the object's size) plus 0.5 % of the distance, and at least
 /// three times the roughness, so that sensor noise — which grows with distance and, in
@@ -289,24 +293,44 @@ impl Observation {
     }
 
     /// (coverage, agreement, violation) of a rendered depth against the observed one.
+    ///
+    /// A rendered pixel agrees when the observed depth of its own pixel or of one of its 8
+    /// neighbours lies within the tolerance, and violates free space when it lies in front of
+    /// all of them: a pose a fraction of a pixel off (what ICP leaves) must not lose the
+    /// steep parts of the surface, where depth changes fast from pixel to pixel.
     fn compare(&self, rendered: &DepthImage, slack: f32) -> (f64, f64, f64) {
+        let (w, h) = (self.depth.width as usize, self.depth.height as usize);
+        let radius = NEIGHBOURHOOD;
         let (mut with_return, mut agree, mut violate, mut covered) = (0usize, 0usize, 0usize, 0);
-        for ((&r, &o), &m) in rendered
-            .data
-            .iter()
-            .zip(&self.depth.data)
-            .zip(&self.mask.data)
-        {
-            if r <= 0.0 || o <= 0.0 {
-                continue;
-            }
-            with_return += 1;
-            let tol = depth_tolerance(o, self.roughness) + slack;
-            if (r - o).abs() <= tol {
-                agree += 1;
-                covered += m as usize;
-            } else if r < o - tol {
-                violate += 1;
+        for v in 0..h {
+            for u in 0..w {
+                let i = v * w + u;
+                let (r, o) = (rendered.data[i], self.depth.data[i]);
+                if r <= 0.0 || o <= 0.0 {
+                    continue;
+                }
+                with_return += 1;
+                let tol = depth_tolerance(o, self.roughness) + slack;
+                let (mut near, mut behind_all) = ((r - o).abs() <= tol, r < o - tol);
+                if !near && radius > 0 {
+                    for vv in v.saturating_sub(radius)..=(v + radius).min(h - 1) {
+                        for uu in u.saturating_sub(radius)..=(u + radius).min(w - 1) {
+                            let on = self.depth.data[vv * w + uu];
+                            if on <= 0.0 {
+                                continue;
+                            }
+                            let tol = depth_tolerance(on, self.roughness) + slack;
+                            near |= (r - on).abs() <= tol;
+                            behind_all &= r < on - tol;
+                        }
+                    }
+                }
+                if near {
+                    agree += 1;
+                    covered += self.mask.data[i] as usize;
+                } else if behind_all {
+                    violate += 1;
+                }
             }
         }
         if with_return == 0 || self.mask_pixels == 0 {
@@ -390,17 +414,6 @@ fn splat(points: &[Vec3], pose: &Pose, k: &Intrinsics, radius: f32) -> DepthImag
         }
     }
     depth
-}
-
-/// `pose ∘ rotation`: the pose of the original model given the pose of its copy rotated by
-/// `rotation` (`x_copy = rotation · x`).
-pub fn unrotate(pose_of_copy: &Pose, rotation: &Pose) -> Pose {
-    pose_of_copy.compose(rotation)
-}
-
-/// Rotates points about the origin of the model frame.
-pub fn rotate_points(points: &[Vec3], rotation: &Pose) -> Vec<Vec3> {
-    points.iter().map(|p| rotation.apply_f32(*p)).collect()
 }
 
 #[cfg(test)]

@@ -553,7 +553,11 @@ fn eval_writes_peer_lines_for_cases_and_tables_for_a_bop_dataset() {
             })
             .collect();
         assert!(at.windows(2).all(|w| w[0] < w[1]), "{raw}");
-        assert_eq!(l.as_object().unwrap().len(), 7);
+        // Then ours add the confidence and the verdict (the scorer ignores extra keys).
+        assert_eq!(l.as_object().unwrap().len(), 9, "{l}");
+        let c = l["confidence"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&c), "{l}");
+        assert!(["ok", "uncertain", "not_found"].contains(&l["verdict"].as_str().unwrap()));
         assert_eq!(l["ok"], true, "{l}");
         assert!(l["error"].is_null() && l["seconds"].as_f64().unwrap() > 0.0);
     }

@@ -9,8 +9,8 @@ use ic_geometry::Pose;
 use serde::{Deserialize, Serialize};
 
 use crate::config::PoseConfig;
-use crate::network::{HeadOutput, PairBatch, PoseNet, check_points};
-use crate::recover::{RecoveryOptions, recover_pose};
+use crate::network::{HeadOutput, PairBatch, PoseNet, SweepBatch, check_points};
+use crate::recover::{RecoveryOptions, SampledPose, SamplingOptions, recover_pose, sample_poses};
 use crate::{PoseError, Result, checkpoint};
 
 /// The pose of the model in the camera frame and how well it is supported.
@@ -22,6 +22,40 @@ pub struct PoseEstimate {
     pub inlier_count: usize,
     /// Mean probability of the kept correspondences, in [0, 1].
     pub assignment_confidence: f32,
+}
+
+/// One rotated copy's estimates of [`PoseEstimator::estimate_rotations`], mapped back to the
+/// unrotated model.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CopyEstimate {
+    /// The copy's index in the rotations.
+    pub rotation: usize,
+    /// Weighted Procrustes of all the copy's correspondences.
+    pub estimate: PoseEstimate,
+    /// Poses of minimal sets drawn from them, most supported first (empty without sampling).
+    pub sampled: Vec<SampledPose>,
+}
+
+/// Settings of [`PoseEstimator::estimate_rotations`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SweepOptions {
+    /// Copies that go through the transformer (copy 0 and the best by DGCNN features); at
+    /// least the number of rotations = all.
+    pub keep: usize,
+    /// Poses of minimal sets drawn from each kept copy's correspondences.
+    pub sampling: Option<SamplingOptions>,
+    /// Seed of the sampling (copy i uses `seed + i`).
+    pub seed: u64,
+}
+
+impl Default for SweepOptions {
+    fn default() -> Self {
+        SweepOptions {
+            keep: usize::MAX,
+            sampling: None,
+            seed: 0,
+        }
+    }
 }
 
 /// A trained network ready for inference (no autograd graph is recorded: the weights are
@@ -121,6 +155,74 @@ impl PoseEstimator {
                     pose: r.pose,
                     inlier_count: r.inlier_count,
                     assignment_confidence: r.assignment_confidence,
+                })
+            })
+            .collect())
+    }
+
+    /// The rotation sweep of hypothesise-and-verify: one estimate per rotation, of the copy
+    /// of `model_points` (model frame, normalised units) turned by that rotation about the
+    /// model's origin, against the same `observed_points` (camera frame). All copies go through
+    /// the network as one batch, with the observed cloud encoded once
+    /// ([`PoseNet::forward_sweep_pruned`]); with `options.keep` below the number of rotations,
+    /// only copy 0 and the `keep − 1` copies whose DGCNN features best match the observed
+    /// ones go on through the transformer. Each returned pose maps the *unrotated* model
+    /// points onto the observed points (the copy's pose composed with its rotation). With
+    /// `options.sampling`, each copy also gets the poses of minimal sets drawn from its
+    /// correspondences ([`sample_poses`], seeded by `options.seed` and the copy's index).
+    ///
+    /// Errors of the whole sweep: no rotation, fewer points than the network's k (or 3),
+    /// non-finite coordinates. A copy whose correspondences admit no pose gets its own error.
+    pub fn estimate_rotations(
+        &self,
+        model_points: &[Vec3],
+        rotations: &[Pose],
+        observed_points: &[Vec3],
+        options: &SweepOptions,
+    ) -> Result<Vec<Result<CopyEstimate>>> {
+        let batch = SweepBatch::new(
+            model_points,
+            rotations,
+            observed_points,
+            self.config.net.k,
+            &self.device,
+        )?;
+        let (out, kept) = self.net.forward_sweep_pruned(&batch, options.keep)?;
+        let matches = out.matches()?;
+        Ok(kept
+            .iter()
+            .zip(&matches)
+            .map(|(&i, m)| {
+                let (copy, r) = (&batch.copies[i], &rotations[i]);
+                let e = recover_pose(copy, observed_points, m, &self.recovery)?;
+                let rotation = Pose {
+                    rotation: r.rotation,
+                    translation: ic_geometry::glam::DVec3::ZERO,
+                };
+                let sampled = match &options.sampling {
+                    Some(sampling) => sample_poses(
+                        copy,
+                        observed_points,
+                        m,
+                        sampling,
+                        options.seed.wrapping_add(i as u64),
+                    )
+                    .into_iter()
+                    .map(|s| SampledPose {
+                        pose: s.pose.compose(&rotation),
+                        inliers: s.inliers,
+                    })
+                    .collect(),
+                    None => Vec::new(),
+                };
+                Ok(CopyEstimate {
+                    rotation: i,
+                    estimate: PoseEstimate {
+                        pose: e.pose.compose(&rotation),
+                        inlier_count: e.inlier_count,
+                        assignment_confidence: e.assignment_confidence,
+                    },
+                    sampled,
                 })
             })
             .collect())

@@ -75,8 +75,12 @@ pub unsafe fn tune_candle_cpu_pool() {
 
 pub use config::{Head, NetConfig, OtConfig, OtLoss, PoseConfig, TrainConfig};
 pub use error::{PoseError, Result};
-pub use estimator::{PoseEstimate, PoseEstimator};
+pub use estimator::{CopyEstimate, PoseEstimate, PoseEstimator, SweepOptions};
 pub use ic_nn::{adam, seeded_var_builder};
-pub use network::{HeadOutput, Match, PairBatch, PoseNet, correspondence_accuracy, nll_loss};
-pub use recover::{Recovered, RecoveryOptions, Refine, recover_pose};
+pub use network::{
+    HeadOutput, Match, PairBatch, PoseNet, SweepBatch, correspondence_accuracy, nll_loss,
+};
+pub use recover::{
+    Recovered, RecoveryOptions, Refine, SampledPose, SamplingOptions, recover_pose, sample_poses,
+};
 pub use train::{StepStats, Trainer};

@@ -63,6 +63,81 @@ fn channel_first(clouds: &[&[Vec3]], k: usize, device: &Device) -> Result<(Tenso
     ))
 }
 
+/// One model cloud in `B` rotated copies against one observed cloud, ready for
+/// [`PoseNet::forward_sweep`]: the rotation sweep of hypothesise-and-verify.
+///
+/// Copy `b` is `rotations[b]` applied to the model points about the model frame's origin
+/// (normalised units), then centred like [`PairBatch`]. The k-NN graph of a cloud does not
+/// change under rotation, so the model's graph is computed once and shared by the copies.
+#[derive(Clone, Debug)]
+pub struct SweepBatch {
+    /// The rotated copies, model frame rotated (not centred): what each copy's pose maps.
+    pub copies: Vec<Vec<Vec3>>,
+    /// `[B, 3, M]`, each copy centred on its centroid.
+    pub model: Tensor,
+    /// `[B, M·k]` u32, the same graph for every copy.
+    pub model_graph: Tensor,
+    /// `[1, 3, N]`, centred.
+    pub observed: Tensor,
+    /// `[1, N·k]` u32.
+    pub observed_graph: Tensor,
+}
+
+impl SweepBatch {
+    /// Builds the sweep; errors on no rotation, fewer than `k` (or 3) points or non-finite
+    /// coordinates.
+    pub fn new(
+        model: &[Vec3],
+        rotations: &[ic_geometry::Pose],
+        observed: &[Vec3],
+        k: usize,
+        device: &Device,
+    ) -> Result<Self> {
+        if rotations.is_empty() {
+            return Err(PoseError::Batch(
+                "a sweep needs at least one rotation".into(),
+            ));
+        }
+        check_points("model points", model, k.max(3))?;
+        check_points("observed points", observed, k.max(3))?;
+        let copies: Vec<Vec<Vec3>> = rotations
+            .iter()
+            .map(|r| model.iter().map(|&p| r.rotate_f32(p)).collect())
+            .collect();
+        let m = model.len();
+        let mut coords = Vec::with_capacity(copies.len() * 3 * m);
+        for copy in &copies {
+            let c = copy.iter().copied().sum::<Vec3>() / m as f32;
+            for axis in 0..3 {
+                coords.extend(copy.iter().map(|q| q[axis] - c[axis]));
+            }
+        }
+        let centre = model.iter().copied().sum::<Vec3>() / m as f32;
+        let centred: Vec<Vec3> = model.iter().map(|q| *q - centre).collect();
+        let graph = knn::knn_indices(&centred, k);
+        let b = copies.len();
+        let model_graph = Tensor::from_vec(graph, (1, m * k), device)?
+            .broadcast_as((b, m * k))?
+            .contiguous()?;
+        let (observed, observed_graph) = channel_first(&[observed], k, device)?;
+        Ok(SweepBatch {
+            model: Tensor::from_vec(coords, (b, 3, m), device)?,
+            copies,
+            model_graph,
+            observed,
+            observed_graph,
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.copies.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.copies.is_empty()
+    }
+}
+
 impl PairBatch {
     /// Builds the batch; errors on an empty batch, differing sizes, fewer than `k` points or
     /// non-finite coordinates.
@@ -242,6 +317,67 @@ impl PoseNet {
     /// running ones) in the batch-norm layers.
     pub fn forward_t(&self, batch: &PairBatch, train: bool) -> CResult<HeadOutput> {
         let (fx, fy) = self.embed(batch, train)?;
+        self.head(&fx, &fy)
+    }
+
+    /// Inference on a [`SweepBatch`]: the same log-probabilities as [`PoseNet::forward_t`] on
+    /// the pairs (copy b, observed) for every b, with the observed cloud's DGCNN features, its
+    /// transformer memory and its decoder self-attention computed once instead of `B` times.
+    pub fn forward_sweep(&self, batch: &SweepBatch) -> CResult<HeadOutput> {
+        Ok(self.forward_sweep_pruned(batch, batch.len())?.0)
+    }
+
+    /// [`PoseNet::forward_sweep`] for the `keep` most promising copies only: after the DGCNN,
+    /// each copy is ranked by how well its features match the observed cloud's (for each
+    /// observed point the best cosine similarity over the copy's points, averaged), and only
+    /// copy 0 and the best `keep − 1` others go through the transformer and the head. Returns
+    /// the head output of the kept copies and their indices in the batch, in batch order.
+    pub fn forward_sweep_pruned(
+        &self,
+        batch: &SweepBatch,
+        keep: usize,
+    ) -> CResult<(HeadOutput, Vec<usize>)> {
+        let tx = self
+            .encoder
+            .forward_t(&batch.model, &batch.model_graph, false)?
+            .transpose(1, 2)?
+            .contiguous()?;
+        let ty = self
+            .encoder
+            .forward_t(&batch.observed, &batch.observed_graph, false)?
+            .transpose(1, 2)?
+            .contiguous()?;
+        let b = tx.dim(0)?;
+        let keep = keep.clamp(1, b);
+        let (tx, kept) = if keep < b {
+            let unit = |t: &Tensor| -> CResult<Tensor> {
+                t.broadcast_div(&(t.sqr()?.sum_keepdim(2)?.sqrt()? + 1e-6)?)
+            };
+            let (nx, ny) = (unit(&tx)?, unit(&ty)?);
+            let (_, n, d) = ny.dims3()?;
+            let sim = ny.broadcast_as((b, n, d))?.contiguous()?.matmul(&nx.t()?)?;
+            let score: Vec<f32> = sim.max(2)?.mean(1)?.to_vec1()?;
+            let mut order: Vec<usize> = (1..b).collect();
+            order.sort_by(|&i, &j| score[j].total_cmp(&score[i]).then(i.cmp(&j)));
+            let mut kept: Vec<usize> = std::iter::once(0)
+                .chain(order.into_iter().take(keep - 1))
+                .collect();
+            kept.sort_unstable();
+            let idx = Tensor::from_vec(
+                kept.iter().map(|&i| i as u32).collect::<Vec<_>>(),
+                kept.len(),
+                tx.device(),
+            )?;
+            (tx.index_select(&idx, 0)?.contiguous()?, kept)
+        } else {
+            (tx, (0..b).collect())
+        };
+        let (fx, fy) = self.transformer.forward_shared(&tx, &ty)?;
+        Ok((self.head(&fx, &fy)?, kept))
+    }
+
+    /// The score map and the head on the embeddings `fx [B, M, d]`, `fy [B, N, d]`.
+    fn head(&self, fx: &Tensor, fy: &Tensor) -> CResult<HeadOutput> {
         let (m, n) = (fx.dim(1)?, fy.dim(1)?);
         let log_p = match self.cfg.head {
             Head::Softmax => log_softmax_last(&(fy.matmul(&fx.t()?)? * self.score_scale())?)?,

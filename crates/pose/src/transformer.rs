@@ -130,9 +130,19 @@ impl DecoderLayer {
     }
 
     pub fn forward(&self, x: &Tensor, memory: &Tensor) -> Result<Tensor> {
+        self.after_self_attention(&self.self_attention(x)?, memory)
+    }
+
+    /// The first sub-layer, `x + SelfAttn(LN(x))`: it does not see the memory.
+    pub fn self_attention(&self, x: &Tensor) -> Result<Tensor> {
         let h = self.ln1.forward(x)?;
-        let x = (x + self.self_attn.forward(&h, &h)?)?;
-        let x = (&x + self.cross_attn.forward(&self.ln2.forward(&x)?, memory)?)?;
+        x + self.self_attn.forward(&h, &h)?
+    }
+
+    /// The rest of the layer (cross-attention, feed-forward, final LayerNorm) on the output of
+    /// [`DecoderLayer::self_attention`].
+    pub fn after_self_attention(&self, x: &Tensor, memory: &Tensor) -> Result<Tensor> {
+        let x = (x + self.cross_attn.forward(&self.ln2.forward(x)?, memory)?)?;
         let x = (&x + self.ff.forward(&self.ln3.forward(&x)?)?)?;
         self.norm.forward(&x)
     }
@@ -162,6 +172,31 @@ impl Transformer {
     pub fn forward(&self, tx: &Tensor, ty: &Tensor) -> Result<(Tensor, Tensor)> {
         let fx = (tx + self.phi(tx, ty)?)?;
         let fy = (ty + self.phi(ty, tx)?)?;
+        Ok((fx, fy))
+    }
+
+    /// [`Transformer::forward`] for `B` model clouds `tx` (`[B, M, d]`) against one observed
+    /// cloud `ty` (`[1, N, d]`), as if `ty` were repeated `B` times, with everything that
+    /// depends on `ty` alone computed once: its encoder memory and its decoder self-attention.
+    /// Returns `(fx [B, M, d], fy [B, N, d])`, the same values as `forward` on the repeated
+    /// batch.
+    pub fn forward_shared(&self, tx: &Tensor, ty: &Tensor) -> Result<(Tensor, Tensor)> {
+        let b = tx.dim(0)?;
+        if ty.dim(0)? != 1 {
+            candle_core::bail!(
+                "forward_shared: the observed batch has {} clouds, not 1",
+                ty.dim(0)?
+            );
+        }
+        let repeat = |t: &Tensor| -> Result<Tensor> {
+            let (_, p, d) = t.dims3()?;
+            t.broadcast_as((b, p, d))?.contiguous()
+        };
+        let memory_y = repeat(&self.encoder.forward(ty)?)?;
+        let fx = (tx + self.decoder.forward(tx, &memory_y)?)?;
+        let memory_x = self.encoder.forward(tx)?;
+        let self_y = repeat(&self.decoder.self_attention(ty)?)?;
+        let fy = (repeat(ty)? + self.decoder.after_self_attention(&self_y, &memory_x)?)?;
         Ok((fx, fy))
     }
 }

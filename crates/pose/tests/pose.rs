@@ -422,3 +422,95 @@ fn ot_loss_balanced_averages_matches_and_bins_separately() {
         "{paper}"
     );
 }
+
+#[test]
+fn rotation_sweep_matches_the_explicit_batch_of_rotated_copies() {
+    // The sweep encodes the observed cloud once and shares the model's k-NN graph; the
+    // log-probabilities and poses must be those of the plain batch of (R·x, y) pairs.
+    let rotations = ic_geometry::rotations::rotation_group(12).unwrap();
+    for head in [Head::Softmax, Head::Ot] {
+        let mut trainer = Trainer::new(tiny(head), 5).unwrap();
+        let train = vec![pair(31, 32, 24, 20), pair(32, 32, 24, 20)];
+        let (pp, aa) = refs(&train);
+        for _ in 0..3 {
+            trainer.step_pairs(&pp, &aa).unwrap();
+        }
+        let est = trainer.estimator();
+        let p = pair(33, 40, 30, 25);
+        let copies: Vec<Vec<Vec3>> = rotations
+            .iter()
+            .map(|r| p.model.iter().map(|&q| r.rotate_f32(q)).collect())
+            .collect();
+        let pairs: Vec<(&[Vec3], &[Vec3])> = copies
+            .iter()
+            .map(|c| (c.as_slice(), p.observed.as_slice()))
+            .collect();
+        let k = est.config().net.k;
+        let plain = est
+            .net()
+            .forward_t(&PairBatch::new(&pairs, k, &Device::Cpu).unwrap(), false)
+            .unwrap();
+        let sweep =
+            ic_pose::network::SweepBatch::new(&p.model, &rotations, &p.observed, k, &Device::Cpu)
+                .unwrap();
+        let swept = est.net().forward_sweep(&sweep).unwrap();
+        let a = plain.log_p.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let b = swept.log_p.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert_eq!(a.len(), b.len());
+        let worst = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "{head:?}: log P differs by {worst}");
+        // Each estimate is the copy's pose mapped back to the unrotated model.
+        let one_by_one = est.estimate_batch(&pairs).unwrap();
+        let swept = est
+            .estimate_rotations(
+                &p.model,
+                &rotations,
+                &p.observed,
+                &ic_pose::SweepOptions::default(),
+            )
+            .unwrap();
+        for ((a, b), r) in one_by_one.iter().zip(&swept).zip(&rotations) {
+            let (a, b) = (a.as_ref().unwrap(), &b.as_ref().unwrap().estimate);
+            let expected = a.pose.compose(r);
+            let angle = expected.rotation_angle_to(&b.pose).to_degrees();
+            assert!(angle < 1e-2, "{head:?}: {angle}°");
+            assert!((expected.translation - b.pose.translation).length() < 1e-4);
+        }
+    }
+}
+
+#[test]
+fn pruned_sweep_keeps_copy_zero_and_matches_the_full_sweep_on_the_kept_copies() {
+    let rotations = ic_geometry::rotations::rotation_group(12).unwrap();
+    let trainer = Trainer::new(tiny(Head::Softmax), 8).unwrap();
+    let est = trainer.estimator();
+    let p = pair(41, 40, 30, 25);
+    let k = est.config().net.k;
+    let sweep =
+        ic_pose::SweepBatch::new(&p.model, &rotations, &p.observed, k, &Device::Cpu).unwrap();
+    let (full, all) = est.net().forward_sweep_pruned(&sweep, 12).unwrap();
+    assert_eq!(all, (0..12).collect::<Vec<_>>());
+    let (some, kept) = est.net().forward_sweep_pruned(&sweep, 4).unwrap();
+    assert_eq!(kept.len(), 4);
+    assert_eq!(kept[0], 0, "the unrotated copy is always kept");
+    assert!(kept.windows(2).all(|w| w[0] < w[1]));
+    let per_copy = 30 * 40;
+    let full = full.log_p.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let some = some.log_p.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    for (slot, &copy) in kept.iter().enumerate() {
+        let a = &full[copy * per_copy..(copy + 1) * per_copy];
+        let b = &some[slot * per_copy..(slot + 1) * per_copy];
+        let worst = a
+            .iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "copy {copy}: {worst}");
+    }
+    // Pruning is deterministic.
+    assert_eq!(est.net().forward_sweep_pruned(&sweep, 4).unwrap().1, kept);
+}

@@ -1,0 +1,139 @@
+//! A whole `register` at 640×480 with the shipped networks: segmentation network, pose
+//! network, hypotheses, ICP and render-and-compare verification, on the demo's scenes (a
+//! procedural object in a procedural room, Kinect-like camera, depth in normalised units).
+//!
+//! - `register_640x480/verified_k24`: the default of `register` (24 rotated copies, the best 8
+//!   refined and verified);
+//! - `register_640x480/paper_k1`: `--rotations 1`, the paper's single pass;
+//! - `baseline/sum_300k_points`: the in-run baseline that ratios are taken to.
+//!
+//! The object (mesh normalised and sampled) is prepared once, outside the timing, as an
+//! application registering the same object in many frames would. After the timings, the mean
+//! seconds of every stage over the scenes, for K = 1, 12, 24 and 60 rotated copies, are
+//! printed and written to `target/register-stages.json`.
+
+use std::hint::black_box;
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use ic_data::{Corpus, CorpusOptions, RoomSampleConfig, RoomSampleGenerator, Split};
+use ic_geometry::{DepthImage, Intrinsics};
+use ic_render::CpuRenderer;
+use incontext::{Object, Pipeline, PipelineOptions, StageSeconds};
+use std::sync::Arc;
+
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// The demo's scenes `seed` (`incontext demo --seed S`): depth (normalised units), camera and
+/// the prepared object.
+fn scene(seed: u64) -> (DepthImage, Intrinsics, Object) {
+    let options = CorpusOptions {
+        model_points: 16,
+        ..CorpusOptions::default()
+    };
+    let corpus = Arc::new(Corpus::procedural(1, Split::Test, seed, options).unwrap());
+    let generator =
+        RoomSampleGenerator::new(corpus.clone(), RoomSampleConfig::default(), seed).unwrap();
+    let view = generator.view_with(&mut CpuRenderer::new(), 0).unwrap();
+    let object = corpus
+        .object(corpus.position(&view.object_id).unwrap())
+        .unwrap();
+    let object = Object::from_mesh((*object.mesh).clone(), seed).unwrap();
+    (view.depth, view.intrinsics, object)
+}
+
+fn baseline(c: &mut Criterion) {
+    // SAFETY: the first benchmark, before any pool thread exists.
+    unsafe { ic_pose::tune_candle_cpu_pool() };
+    let points: Vec<ic_geometry::glam::Vec3> = (0..300_000)
+        .map(|i| ic_geometry::glam::Vec3::splat(i as f32 * 1e-5))
+        .collect();
+    c.bench_function("baseline/sum_300k_points", |b| {
+        b.iter(|| {
+            black_box(&points)
+                .iter()
+                .copied()
+                .sum::<ic_geometry::glam::Vec3>()
+        })
+    });
+}
+
+fn register(c: &mut Criterion) {
+    let scenes: Vec<_> = (1..=3).map(scene).collect();
+    let pipeline = |rotations: usize| {
+        let options = PipelineOptions {
+            rotations,
+            ..PipelineOptions::default()
+        };
+        Pipeline::load(None, None, None, true, options).unwrap()
+    };
+    let mut group = c.benchmark_group("register_640x480");
+    group.sample_size(10);
+    for (label, rotations) in [("verified_k24", 24), ("paper_k1", 1)] {
+        let pipeline = pipeline(rotations);
+        let mut i = 0usize;
+        group.bench_function(label, |b| {
+            b.iter(|| {
+                let (depth, k, object) = &scenes[i % scenes.len()];
+                i += 1;
+                black_box(
+                    pipeline
+                        .register_depth_normalised(object, depth, k, None, 0)
+                        .is_ok(),
+                )
+            })
+        });
+    }
+    group.finish();
+    // The split per stage for each rotation count K, averaged over the scenes (two passes
+    // each, after one warm-up pass).
+    let mut stages = serde_json::Map::new();
+    for rotations in [1, 12, 24, 60] {
+        let pipeline = pipeline(rotations);
+        let mut sum = StageSeconds::default();
+        let mut n = 0.0;
+        for pass in 0..3 {
+            for (depth, k, object) in &scenes {
+                let s = pipeline
+                    .register_depth_normalised(object, depth, k, None, 0)
+                    .unwrap()
+                    .seconds;
+                if pass == 0 {
+                    continue;
+                }
+                sum.segmentation_network += s.segmentation_network;
+                sum.segmentation_post += s.segmentation_post;
+                sum.observed_points += s.observed_points;
+                sum.pose_network += s.pose_network;
+                sum.ranking += s.ranking;
+                sum.icp += s.icp;
+                sum.verification += s.verification;
+                sum.total += s.total;
+                n += 1.0;
+            }
+        }
+        let ms = |v: f64| (v / n * 1e4).round() / 10.0;
+        let row = serde_json::json!({
+            "segmentation_network_ms": ms(sum.segmentation_network),
+            "segmentation_post_ms": ms(sum.segmentation_post),
+            "observed_points_ms": ms(sum.observed_points),
+            "pose_network_ms": ms(sum.pose_network),
+            "ranking_ms": ms(sum.ranking),
+            "icp_ms": ms(sum.icp),
+            "verification_ms": ms(sum.verification),
+            "other_ms": ms(sum.total - sum.segmentation_network - sum.segmentation_post
+                - sum.observed_points - sum.pose_network - sum.ranking - sum.icp - sum.verification),
+            "total_ms": ms(sum.total),
+        });
+        eprintln!("register_640x480 K = {rotations}: stages (mean of {n} runs): {row}");
+        stages.insert(format!("k{rotations}"), row);
+    }
+    let target = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../target");
+    let _ = std::fs::create_dir_all(&target);
+    let path = target.join("register-stages.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&stages).unwrap()).unwrap();
+    eprintln!("wrote {}", path.display());
+}
+
+criterion_group!(benches, baseline, register);
+criterion_main!(benches);
