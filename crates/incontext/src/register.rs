@@ -96,8 +96,9 @@ pub struct NetworkArgs {
     /// orientation, unverified (faster; right only for views like the training ones).
     #[arg(long, default_value_t = 24, value_parser = parse_rotations)]
     pub rotations: usize,
-    /// With --rotations: how many of the rotated copies' one-shot poses (ranked by how many
-    /// object points they explain) are refined by ICP and verified by render-and-compare.
+    /// With --rotations: how many of the hypotheses (the rotated copies' one-shot and sampled
+    /// poses, ranked by how many object points they explain) are refined by ICP and verified
+    /// by render-and-compare.
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=60))]
     pub verify_top: u32,
     /// With --rotations: how many rotated copies go on through the network's transformer after
