@@ -77,28 +77,28 @@ fn parse_set(s: &str) -> Result<(String, PathBuf, Vec<PathBuf>)> {
     ))
 }
 
+/// The truth (`gt.json`, via `ic_eval::cases`) and the model points (`source.ply`) of every
+/// case folder under `dir`.
 fn read_cases(dir: &Path) -> Result<BTreeMap<String, Case>> {
     let mut out = BTreeMap::new();
-    for e in std::fs::read_dir(dir).with_context(|| format!("listing {}", dir.display()))? {
-        let d = e?.path();
-        if !d.join("gt.json").is_file() {
-            continue;
-        }
-        let name = d.file_name().unwrap().to_string_lossy().into_owned();
-        let truth = ic_eval::cases::read_gt(&d.join("gt.json"))?;
-        let points = ic_geometry::io::read_ply_cloud(d.join("source.ply"))?.points;
+    // `dir` may be a single case folder, as `read_case_truths` allows.
+    let single = dir.join("gt.json").is_file();
+    for t in ic_eval::cases::read_case_truths(dir)? {
+        let case_dir = if single {
+            dir.to_path_buf()
+        } else {
+            dir.join(&t.case)
+        };
+        let points = ic_geometry::io::read_ply_cloud(case_dir.join("source.ply"))?.points;
         let diameter = ic_eval::diameter(&points);
         out.insert(
-            name,
+            t.case,
             Case {
-                truth,
+                truth: t.pose,
                 points,
                 diameter,
             },
         );
-    }
-    if out.is_empty() {
-        bail!("{}: no case folder with gt.json", dir.display());
     }
     Ok(out)
 }
@@ -198,17 +198,12 @@ pub fn run(args: VerifyReportArgs) -> Result<()> {
             let n_right = lines.values().filter(|s| right(s)).count();
             let precision = ok_right as f64 / ok.max(1) as f64;
             let recall = ok_right as f64 / n_right.max(1) as f64;
-            let mut secs: Vec<f64> = lines
+            let secs: Vec<f64> = lines
                 .values()
                 .map(|s| s.seconds)
                 .filter(|s| s.is_finite())
                 .collect();
-            secs.sort_by(f64::total_cmp);
-            let median = if secs.is_empty() {
-                f64::NAN
-            } else {
-                secs[secs.len() / 2]
-            };
+            let median = ic_eval::median(&secs);
             table.push_str(&format!(
                 "| {name} | {method} | {n} | {acc15:.3} | {adds:.3} | {ok} | {unc} | {nf} | {precision:.3} | {recall:.3} | {median:.3} |\n"
             ));

@@ -206,13 +206,7 @@ where
             .filter(|b| b.count > 0)
             .map(|b| (b.mean_confidence, b.fraction_right))
             .collect();
-        chart
-            .draw_series(LineSeries::new(points.clone(), colour.stroke_width(2)))
-            .map_err(err)?
-            .label(name.clone())
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2))
-            });
+        crate::plot::labelled_line(&mut chart, points, colour, name)?;
         // Markers grow with the bin's count (few samples: a small dot, little weight).
         chart
             .draw_series(bins.iter().filter(|b| b.count > 0).map(|b| {

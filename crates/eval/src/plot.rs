@@ -49,6 +49,24 @@ macro_rules! draw_to_file {
 }
 pub(crate) use draw_to_file;
 
+/// Draws a 2-px line through `points` in `colour`, with `name` in the legend.
+pub(crate) fn labelled_line<'a, DB: DrawingBackend + 'a>(
+    chart: &mut ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    points: Vec<(f64, f64)>,
+    colour: RGBAColor,
+    name: &str,
+) -> Result<(), EvalError>
+where
+    DB::ErrorType: 'static,
+{
+    chart
+        .draw_series(LineSeries::new(points, colour.stroke_width(2)))
+        .map_err(|e| EvalError::Plot(e.to_string()))?
+        .label(name)
+        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2)));
+    Ok(())
+}
+
 /// Draws the legend of `chart` at `position` and writes `root` out.
 pub(crate) fn legend_and_present<'a, DB: DrawingBackend + 'a>(
     chart: &mut ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
@@ -152,13 +170,7 @@ where
                 (t, accuracy(errors, t))
             })
             .collect();
-        chart
-            .draw_series(LineSeries::new(points, colour.stroke_width(2)))
-            .map_err(err)?
-            .label(r.method.clone())
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2))
-            });
+        labelled_line(&mut chart, points, colour, &r.method)?;
     }
     legend_and_present(&mut chart, &root, SeriesLabelPosition::LowerRight)
 }
@@ -209,13 +221,7 @@ where
         .map_err(err)?;
     for (i, (name, points)) in series.iter().enumerate() {
         let colour = Palette99::pick(i).to_rgba();
-        chart
-            .draw_series(LineSeries::new(points.clone(), colour.stroke_width(2)))
-            .map_err(err)?
-            .label(name.clone())
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2))
-            });
+        labelled_line(&mut chart, points.clone(), colour, name)?;
         chart
             .draw_series(points.iter().map(|&p| Circle::new(p, 4, colour.filled())))
             .map_err(err)?;

@@ -58,10 +58,10 @@ pub const VERIFIED_OK: f64 = 0.9;
 /// model at its best pose explains almost none of the object's depth.
 pub const VERIFIED_FOUND: f64 = 0.05;
 
-/// The isotonic calibration of the render-and-compare score, `models/verify-calibration.json`
-/// (fitted by `cargo xtask verify-report --fit-calibration` on validation views of unseen
-/// objects, see `models/README.md`): the probability that a verified pose is right (ADD-S
-/// below 0.1 of the diameter) given its score. Embedded in the binary.
+/// The isotonic calibration of a verified pose's [`evidence`],
+/// `models/verify-calibration.json` (fitted by `cargo xtask verify-report --fit-calibration` on
+/// validation views of unseen objects, see `models/README.md`): the probability that the pose
+/// is right (ADD-S below 0.1 of the diameter) given its evidence. Embedded in the binary.
 pub fn verified_calibration() -> &'static ic_eval::Calibration {
     static CALIBRATION: std::sync::OnceLock<ic_eval::Calibration> = std::sync::OnceLock::new();
     CALIBRATION.get_or_init(|| {
@@ -129,10 +129,9 @@ impl Object {
     /// ADD-S between the model at poses `a` and `b` (normalised units): the mean distance from
     /// each of 256 of the object's points (evenly strided) at `a` to the nearest point at `b`.
     pub fn add_s(&self, a: &Pose, b: &Pose) -> f64 {
-        let step = self.points.len().div_ceil(256).max(1);
         let b_inv = b.inverse();
         let (mut sum, mut n) = (0.0f64, 0usize);
-        for p in self.points.iter().step_by(step) {
+        for p in strided(&self.points, 256) {
             let q = b_inv.apply_f32(a.apply_f32(*p));
             sum += self.tree.nearest(q).distance as f64;
             n += 1;
@@ -214,8 +213,7 @@ impl Object {
         normalisation: Normalisation,
     ) -> Result<Object> {
         let tree = KdTree::new(&points)?;
-        let step = points.len().div_ceil(512).max(1);
-        let some: Vec<Vec3> = points.iter().step_by(step).copied().collect();
+        let some: Vec<Vec3> = strided(&points, 512).copied().collect();
         let diameter = ic_eval::diameter(&some);
         Ok(Object {
             mesh: None,
@@ -258,7 +256,13 @@ impl Verdict {
     /// The verdict of a point-distance confidence in [0, 1] (`confidence_ok`,
     /// `confidence_found`).
     pub fn of(confidence: f64, options: &PipelineOptions) -> Verdict {
-        Verdict::by(confidence, options.confidence_ok, options.confidence_found)
+        if confidence >= options.confidence_ok {
+            Verdict::Ok
+        } else if confidence >= options.confidence_found {
+            Verdict::Uncertain
+        } else {
+            Verdict::NotFound
+        }
     }
 
     /// The verdict of a verified pose: `not_found` when its raw render-and-compare `score` is
@@ -271,16 +275,6 @@ impl Verdict {
             Verdict::Ok
         } else {
             Verdict::Uncertain
-        }
-    }
-
-    fn by(value: f64, ok: f64, found: f64) -> Verdict {
-        if value >= ok {
-            Verdict::Ok
-        } else if value >= found {
-            Verdict::Uncertain
-        } else {
-            Verdict::NotFound
         }
     }
 
@@ -705,18 +699,18 @@ impl Pipeline {
         if let (Some(obs), true) = (observation, self.options.rotations > 1) {
             return self.register_verified(object, voxels, obs, seed, seconds, clock);
         }
-        let mut best: Option<Hypothesis> = None;
+        let mut best: Option<(f64, Hypothesis)> = None;
         let target = self.icp_target(object, &mut seconds)?;
         for h in 0..self.options.hypotheses.max(1) {
             let hseed = hypothesis_seed(seed, h);
             let hyp = self.hypothesis(object, &voxels, target.as_ref(), hseed, &mut seconds)?;
-            if best.as_ref().is_none_or(|b| hyp.confidence > b.confidence) {
-                best = Some(hyp);
+            let confidence = self.explained(object, &voxels, &hyp.pose);
+            if best.as_ref().is_none_or(|(b, _)| confidence > *b) {
+                best = Some((confidence, hyp));
             }
         }
-        let best = best.expect("at least one hypothesis");
+        let (confidence, best) = best.expect("at least one hypothesis");
         seconds.total = clock.elapsed().as_secs_f64();
-        let confidence = best.confidence;
         let made = self.options.hypotheses.max(1);
         Ok(self.registration(object, best, confidence, None, (made, 0), voxels, seconds))
     }
@@ -782,6 +776,8 @@ impl Pipeline {
             m => (m, m * 3 / 4),
         };
         let mut candidates: Vec<(f64, Pose, ic_pose::PoseEstimate)> = Vec::new();
+        // The hypotheses are ranked by the point-distance confidence on a few of the voxels.
+        let ranking: Vec<Vec3> = strided(&voxels, RANKING_POINTS).copied().collect();
         for h in 0..self.options.hypotheses.max(1) {
             let t = Instant::now();
             let (x, y, _) = draw_points(object, &voxels, (m, n), hypothesis_seed(seed, h))?;
@@ -811,22 +807,14 @@ impl Pipeline {
                 match e {
                     Ok(c) => {
                         let e = c.estimate;
-                        candidates.push((
-                            self.explained_rough(object, &voxels, &e.pose),
-                            e.pose,
-                            e,
-                        ));
+                        candidates.push((self.explained(object, &ranking, &e.pose), e.pose, e));
                         for s in c.sampled {
                             let e = ic_pose::PoseEstimate {
                                 pose: s.pose,
                                 inlier_count: s.inliers,
                                 ..e
                             };
-                            candidates.push((
-                                self.explained_rough(object, &voxels, &s.pose),
-                                s.pose,
-                                e,
-                            ));
+                            candidates.push((self.explained(object, &ranking, &s.pose), s.pose, e));
                         }
                     }
                     Err(err) => {
@@ -873,7 +861,6 @@ impl Pipeline {
             let hyp = Hypothesis {
                 pose,
                 one_shot: *one_shot,
-                confidence: self.explained(object, &voxels, &pose),
                 inlier_count: estimate.inlier_count,
                 assignment_confidence: estimate.assignment_confidence,
                 icp,
@@ -906,7 +893,6 @@ impl Pipeline {
             if fine.score >= score.score - FINE_REFINE_SLACK {
                 best.pose = pose;
                 best.icp = icp;
-                best.confidence = self.explained(object, &voxels, &pose);
                 score = fine;
             }
         }
@@ -937,14 +923,6 @@ impl Pipeline {
         r.rival_score = Some(rival);
         r.evidence = Some(evidence);
         Ok(r)
-    }
-
-    /// [`Pipeline::explained`] on at most [`RANKING_POINTS`] of the voxels, evenly strided:
-    /// what ranks the one-shot hypotheses before verification.
-    fn explained_rough(&self, object: &Object, voxels: &[Vec3], pose: &Pose) -> f64 {
-        let step = voxels.len().div_ceil(RANKING_POINTS).max(1);
-        let some: Vec<Vec3> = voxels.iter().step_by(step).copied().collect();
-        self.explained(object, &some, pose)
     }
 
     /// Fraction of `voxels` (camera frame) within [`MATCH_DISTANCE`] of the model's dense
@@ -1039,7 +1017,7 @@ impl Pipeline {
         }
     }
 
-    /// One draw of M model and N observed points, the network, ICP, and the confidence.
+    /// One draw of M model and N observed points, the network and ICP.
     fn hypothesis(
         &self,
         object: &Object,
@@ -1061,7 +1039,6 @@ impl Pipeline {
         Ok(Hypothesis {
             pose,
             one_shot,
-            confidence: self.explained(object, voxels, &pose),
             inlier_count: estimate.inlier_count,
             assignment_confidence: estimate.assignment_confidence,
             icp,
@@ -1099,10 +1076,14 @@ fn draw_points(
 struct Hypothesis {
     pose: Pose,
     one_shot: Pose,
-    confidence: f64,
     inlier_count: usize,
     assignment_confidence: f32,
     icp: Option<IcpSummary>,
+}
+
+/// At most about `count` of `points`, evenly strided (every ⌈len / count⌉-th, from the first).
+fn strided(points: &[Vec3], count: usize) -> impl Iterator<Item = &Vec3> {
+    points.iter().step_by(points.len().div_ceil(count).max(1))
 }
 
 /// Warns when the observed object is far larger or smaller than the model: the usual cause is

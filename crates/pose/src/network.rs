@@ -280,17 +280,19 @@ impl PoseNet {
 
     /// The DGCNN features `(θx [B, M, d], θy [B, N, d])`.
     pub fn encode(&self, batch: &PairBatch, train: bool) -> CResult<(Tensor, Tensor)> {
-        let tx = self
-            .encoder
-            .forward_t(&batch.model, &batch.model_graph, train)?
+        Ok((
+            self.encode_cloud(&batch.model, &batch.model_graph, train)?,
+            self.encode_cloud(&batch.observed, &batch.observed_graph, train)?,
+        ))
+    }
+
+    /// The DGCNN features `[B, P, d]` of channel-first clouds `[B, 3, P]` with their k-NN
+    /// graphs `[B, P·k]`.
+    fn encode_cloud(&self, coords: &Tensor, graph: &Tensor, train: bool) -> CResult<Tensor> {
+        self.encoder
+            .forward_t(coords, graph, train)?
             .transpose(1, 2)?
-            .contiguous()?;
-        let ty = self
-            .encoder
-            .forward_t(&batch.observed, &batch.observed_graph, train)?
-            .transpose(1, 2)?
-            .contiguous()?;
-        Ok((tx, ty))
+            .contiguous()
     }
 
     /// `(fx [B, M, d], fy [B, N, d])`.
@@ -337,16 +339,8 @@ impl PoseNet {
         batch: &SweepBatch,
         keep: usize,
     ) -> CResult<(HeadOutput, Vec<usize>)> {
-        let tx = self
-            .encoder
-            .forward_t(&batch.model, &batch.model_graph, false)?
-            .transpose(1, 2)?
-            .contiguous()?;
-        let ty = self
-            .encoder
-            .forward_t(&batch.observed, &batch.observed_graph, false)?
-            .transpose(1, 2)?
-            .contiguous()?;
+        let tx = self.encode_cloud(&batch.model, &batch.model_graph, false)?;
+        let ty = self.encode_cloud(&batch.observed, &batch.observed_graph, false)?;
         let b = tx.dim(0)?;
         let keep = keep.clamp(1, b);
         let (tx, kept) = if keep < b {
