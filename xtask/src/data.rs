@@ -108,7 +108,7 @@ fn parse_range(s: &str, what: &str) -> Result<(u64, u64)> {
     Ok((a, b))
 }
 
-fn open_corpus(args: &CorpusArgs, seed: u64) -> Result<(Corpus, serde_json::Value)> {
+pub(crate) fn open_corpus(args: &CorpusArgs, seed: u64) -> Result<(Corpus, serde_json::Value)> {
     let split: Split = args.split.parse()?;
     let options = CorpusOptions {
         on_bad_mesh: if args.strict {

@@ -1,7 +1,9 @@
 //! `cargo xtask` — the project's only workflow tool (see `.cargo/config.toml`).
 //!
-//! - `cargo xtask test` runs the whole test suite (the README's test command; CI runs it),
-//!   then `cargo xtask bench --quick --strict` (skipped when `INCONTEXT_SKIP_BENCH` is set).
+//! - `cargo xtask test` runs the whole test suite (the README's test command; CI runs it): the
+//!   cargo tests, the Python module's tests (`pytest python/tests` in a fresh venv under
+//!   `target/py-venv`), then `cargo xtask bench --quick --strict` (skipped when
+//!   `INCONTEXT_SKIP_BENCH` is set).
 //! - `cargo xtask bench [--quick] [--peers]` measures accuracy and speed of our methods beside
 //!   Open3D's on fixed case sets and writes `docs/results.md` and `docs/results.json` (see
 //!   `bench.rs`; `--quick` is the small version CI runs, written under `target/bench-quick/`).
@@ -42,6 +44,7 @@ mod data;
 mod pose;
 mod run;
 mod seg;
+mod symmetries;
 mod verify_report;
 
 // Large element-wise tensor ops are ~10x slower with glibc's malloc (fresh pages each time).
@@ -64,8 +67,9 @@ struct Cli {
 #[derive(Subcommand)]
 enum Cmd {
     /// Run the whole test suite: every target of every crate (benches once, in test mode), the
-    /// doc tests, then the quick bench (`bench --quick --strict`; set INCONTEXT_SKIP_BENCH to
-    /// skip it). This is the README's test command and what CI runs.
+    /// doc tests, the Python module's tests (a fresh venv, the wheel, pytest), then the quick
+    /// bench (`bench --quick --strict`; set INCONTEXT_SKIP_BENCH to skip it). This is the
+    /// README's test command and what CI runs.
     Test,
     /// Accuracy and speed of our methods and Open3D's on fixed case sets → docs/results.md
     /// (`--quick`: the small version, under target/bench-quick/); `--criterion [NAME…]` runs the
@@ -88,6 +92,9 @@ enum Cmd {
     /// Score `incontext eval --cases` results of view cases: accuracy, ADD-S, verdict
     /// precision and recall, reliability diagram, calibration fit.
     VerifyReport(verify_report::VerifyReportArgs),
+    /// Find each object's rotational symmetries (discrete and continuous) on its normalised
+    /// mesh: a table, and JSON with `--out`.
+    Symmetries(symmetries::SymmetriesArgs),
 }
 
 /// Which crate owns each benchmark file under `benches/`.
@@ -136,6 +143,10 @@ fn main() -> std::process::ExitCode {
             seg::set_post(args)
         }
         Cmd::VerifyReport(args) => verify_report::run(args),
+        Cmd::Symmetries(args) => {
+            init_tracing();
+            symmetries::run(args)
+        }
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
@@ -180,6 +191,7 @@ fn cargo(args: &[&str]) -> Result<()> {
 fn test() -> Result<()> {
     cargo(&["test", "--workspace", "--all-targets"])?;
     cargo(&["test", "--workspace", "--doc"])?;
+    python_tests()?;
     // The small accuracy/speed bench (about 1.5 min on 2 cores), so `cargo xtask bench` and
     // `incontext eval --cases` cannot rot; writes under target/bench-quick/ only.
     if std::env::var_os("INCONTEXT_SKIP_BENCH").is_some() {
@@ -188,6 +200,98 @@ fn test() -> Result<()> {
     }
     let quick_bench = ["run", "-p", "xtask", "--", "bench", "--quick", "--strict"];
     cargo(&quick_bench)
+}
+
+/// The Python module (python/): a fresh venv under target/py-venv with the pinned tools of
+/// python/requirements-test.txt, the wheel built by maturin in the dev profile (the profile of
+/// the cargo tests above, so their artifacts are reused) and installed, then
+/// `pytest python/tests`. A missing Python fails the step; set INCONTEXT_PYTHON to choose the
+/// interpreter (default `python3`).
+fn python_tests() -> Result<()> {
+    let root = workspace_root();
+    let python = std::env::var("INCONTEXT_PYTHON").unwrap_or_else(|_| "python3".into());
+    let venv = root.join("target/py-venv");
+    let wheels = root.join("target/py-wheels");
+    let run = |program: &Path, args: &[&str]| -> Result<()> {
+        eprintln!("== {} {}", program.display(), args.join(" "));
+        let status = Command::new(program)
+            .current_dir(&root)
+            .args(args)
+            .env("CARGO", env!("CARGO"))
+            .status()
+            .with_context(|| format!("running {}", program.display()))?;
+        if !status.success() {
+            bail!("{} {} failed ({status})", program.display(), args.join(" "));
+        }
+        Ok(())
+    };
+    let version = Command::new(&python).arg("--version").output();
+    match version {
+        Ok(o) if o.status.success() => {}
+        _ => bail!(
+            "the Python tests need Python 3.9 or later with venv and pip: `{python}` was not \
+             found or does not run (install python3 and python3-venv, or set INCONTEXT_PYTHON)"
+        ),
+    }
+    // A fresh venv each run: nothing left from an earlier one can hide a missing dependency.
+    if venv.exists() {
+        std::fs::remove_dir_all(&venv)
+            .with_context(|| format!("removing the old {}", venv.display()))?;
+    }
+    if wheels.exists() {
+        std::fs::remove_dir_all(&wheels)
+            .with_context(|| format!("removing the old {}", wheels.display()))?;
+    }
+    let venv_s = venv.to_string_lossy().into_owned();
+    run(Path::new(&python), &["-m", "venv", &venv_s])?;
+    let bin = venv.join("bin");
+    let py = bin.join("python");
+    run(
+        &py,
+        &[
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--disable-pip-version-check",
+            "-r",
+            "python/requirements-test.txt",
+        ],
+    )?;
+    let py_s = py.to_string_lossy().into_owned();
+    let wheels_s = wheels.to_string_lossy().into_owned();
+    run(
+        &bin.join("maturin"),
+        &[
+            "build",
+            "--profile",
+            "dev",
+            "--manifest-path",
+            "python/Cargo.toml",
+            "--interpreter",
+            &py_s,
+            "--out",
+            &wheels_s,
+        ],
+    )?;
+    let wheel = std::fs::read_dir(&wheels)
+        .with_context(|| format!("listing {}", wheels.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .find(|p| p.extension().is_some_and(|e| e == "whl"))
+        .with_context(|| format!("maturin wrote no wheel into {}", wheels.display()))?;
+    let wheel_s = wheel.to_string_lossy().into_owned();
+    run(
+        &py,
+        &[
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--disable-pip-version-check",
+            &wheel_s,
+        ],
+    )?;
+    run(&py, &["-m", "pytest", "python/tests", "-q"])
 }
 
 /// The criterion benchmarks (`cargo xtask bench --criterion [NAME…]`).

@@ -185,6 +185,12 @@ pub struct Metrics {
     pub rotation_acc_5: f64,
     pub rotation_acc_10: f64,
     pub rotation_acc_15: f64,
+    /// acc@15° of the rotation error up to the object's symmetry: the smallest error to the
+    /// true pose or any pose equivalent to it (`ObjectSample::equivalent_poses`; the same as
+    /// `rotation_acc_15` without symmetry-aware samples). The selection score.
+    pub rotation_acc_15_sym: f64,
+    /// Fraction of samples with an equivalent pose (symmetric objects).
+    pub symmetric_fraction: f64,
     /// Median of ‖t̂ − t‖² (normalised units²), as the paper.
     pub translation_sq_median: f64,
     /// Median of ‖t̂ − t‖.
@@ -212,12 +218,14 @@ fn evaluate<'a>(
 ) -> Result<Metrics> {
     let clock = Instant::now();
     let (mut rot, mut trans) = (Vec::<f64>::new(), Vec::<f64>::new());
+    let (mut rot_sym, mut symmetric) = (Vec::<f64>::new(), 0usize);
     let (mut add_s, mut add_s_rel, mut voxels) = (Vec::new(), Vec::new(), Vec::new());
     let (mut right, mut total) = (0usize, 0usize);
     let mut failures = 0;
     for (i, s) in samples.enumerate() {
         let s = s?;
         voxels.push(s.observed_voxels as f64);
+        symmetric += !s.equivalent_poses.is_empty() as usize;
         let diameter = ic_eval::diameter(&s.model_points);
         let out = estimator.infer(&s.model_points, &s.observed_points)?;
         let matches = out.matches()?.remove(0);
@@ -236,6 +244,12 @@ fn evaluate<'a>(
         ) {
             Ok(r) => {
                 rot.push(ic_eval::rotation_error_deg(&r.pose, &s.pose));
+                rot_sym.push(
+                    s.equivalent_poses
+                        .iter()
+                        .map(|p| ic_eval::rotation_error_deg(&r.pose, p))
+                        .fold(ic_eval::rotation_error_deg(&r.pose, &s.pose), f64::min),
+                );
                 trans.push(ic_eval::translation_error_sq(&r.pose, &s.pose));
                 let a = ic_eval::add_s(&r.pose, &s.pose, &s.model_points)?;
                 add_s.push(a);
@@ -245,6 +259,7 @@ fn evaluate<'a>(
                 tracing::debug!("sample {}: {e}", s.index);
                 failures += 1;
                 rot.push(180.0);
+                rot_sym.push(180.0);
                 trans.push(f64::INFINITY);
                 add_s.push(f64::INFINITY);
                 add_s_rel.push(f64::INFINITY);
@@ -261,6 +276,8 @@ fn evaluate<'a>(
         rotation_acc_5: frac(&rot, 5.0),
         rotation_acc_10: frac(&rot, 10.0),
         rotation_acc_15: frac(&rot, 15.0),
+        rotation_acc_15_sym: frac(&rot_sym, 15.0),
+        symmetric_fraction: symmetric as f64 / n.max(1) as f64,
         translation_acc_1e3: frac(&trans, 1e-3),
         translation_acc_5e3: frac(&trans, 5e-3),
         translation_acc_1e2: frac(&trans, 1e-2),
@@ -450,7 +467,7 @@ pub fn train(args: TrainArgs) -> Result<()> {
     )?;
     let mut val_csv = open_csv(
         &args.out.join("val.csv"),
-        "iteration,rotation_median_deg,rotation_acc_5,rotation_acc_10,rotation_acc_15,translation_sq_median,translation_acc_1e2,correspondence_accuracy,elapsed_s,add_s_acc_01d",
+        "iteration,rotation_median_deg,rotation_acc_5,rotation_acc_10,rotation_acc_15,translation_sq_median,translation_acc_1e2,correspondence_accuracy,elapsed_s,add_s_acc_01d,rotation_acc_15_sym",
         args.resume.then_some(start),
     )?;
     let best_json = args.out.join("best.json");
@@ -509,7 +526,7 @@ pub fn train(args: TrainArgs) -> Result<()> {
             let m = evaluate(&est, val_set.iter().cloned().map(Ok), |_| {})?;
             writeln!(
                 val_csv,
-                "{done},{:.3},{:.4},{:.4},{:.4},{:.6},{:.4},{:.4},{elapsed:.1},{:.4}",
+                "{done},{:.3},{:.4},{:.4},{:.4},{:.6},{:.4},{:.4},{elapsed:.1},{:.4},{:.4}",
                 m.rotation_median_deg,
                 m.rotation_acc_5,
                 m.rotation_acc_10,
@@ -517,15 +534,18 @@ pub fn train(args: TrainArgs) -> Result<()> {
                 m.translation_sq_median,
                 m.translation_acc_1e2,
                 m.correspondence_accuracy,
-                m.add_s_acc_01d
+                m.add_s_acc_01d,
+                m.rotation_acc_15_sym
             )?;
-            let score = m.rotation_acc_15 - 1e-4 * m.rotation_median_deg;
+            // Up to symmetry: a can turned about its axis is not an error.
+            let score = m.rotation_acc_15_sym - 1e-4 * m.rotation_median_deg;
             let line = format!(
-                "iteration {done}: validation rot median {:.2}°, acc@5/10/15 {:.3}/{:.3}/{:.3}, ADD-S<0.1d {:.3}, corr acc {:.3}",
+                "iteration {done}: validation rot median {:.2}°, acc@5/10/15 {:.3}/{:.3}/{:.3}, acc@15 up to symmetry {:.3}, ADD-S<0.1d {:.3}, corr acc {:.3}",
                 m.rotation_median_deg,
                 m.rotation_acc_5,
                 m.rotation_acc_10,
                 m.rotation_acc_15,
+                m.rotation_acc_15_sym,
                 m.add_s_acc_01d,
                 m.correspondence_accuracy
             );

@@ -95,7 +95,18 @@ pub struct ObjectSampleConfig {
     /// radius (≈ 63° for 24) of the family it already knows, and `register --rotations 24`
     /// registers the same copies at inference and verifies them.
     pub copy_rotations: usize,
+    /// List the poses equivalent to the true one under the object's symmetries
+    /// ([`crate::CorpusObject::symmetries`]) and their assignments
+    /// ([`ObjectSample::equivalent_poses`], [`ObjectSample::alternatives`]), so that training
+    /// can score the equivalent pose nearest its prediction and validation can measure the
+    /// rotation error up to symmetry. Deployment path only.
+    #[serde(default)]
+    pub symmetry_aware: bool,
 }
+
+/// At most this many equivalent poses are listed per sample (evenly spread over the
+/// symmetries found, which a continuous axis fills with one per 10°).
+pub const MAX_EQUIVALENT_POSES: usize = 36;
 
 impl Default for ObjectSampleConfig {
     fn default() -> Self {
@@ -128,6 +139,7 @@ impl Default for ObjectSampleConfig {
             mask_erosions: 0,
             crop_radius: None,
             copy_rotations: 0,
+            symmetry_aware: false,
         }
     }
 }
@@ -144,8 +156,8 @@ impl ObjectSampleConfig {
     /// (log-uniform), a quarter of the views free to be cut by the image border, ±20 %
     /// anisotropic scale, an occluder in 60 % of the views hiding 0–50 % of the object, the
     /// sensor model with drawn strengths at a physical size of 5–40 cm and 0.4–2 m, the
-    /// pipeline's mask erosion and 1.2-unit crop. Voxel size, M, N, the match threshold and the
-    /// minimum of 64 voxels are the paper's.
+    /// pipeline's mask erosion and 1.2-unit crop, symmetry-aware ground truth. Voxel size, M,
+    /// N, the match threshold and the minimum of 64 voxels are the paper's.
     pub fn deployment() -> Self {
         ObjectSampleConfig {
             intrinsics: Intrinsics::KINECT_640X480,
@@ -160,6 +172,7 @@ impl ObjectSampleConfig {
             mask_erosions: 1,
             crop_radius: Some(1.2),
             copy_rotations: 24,
+            symmetry_aware: true,
             ..ObjectSampleConfig::default()
         }
     }
@@ -176,6 +189,7 @@ impl ObjectSampleConfig {
             && self.mask_erosions == 0
             && self.crop_radius.is_none()
             && self.copy_rotations == 0
+            && !self.symmetry_aware
     }
 
     /// Checks ranges.
@@ -249,6 +263,13 @@ pub struct ObjectSample {
     pub truncated: bool,
     /// The sensor drawn for this sample (`None`: ideal depth).
     pub sensor: Option<ic_render::SensorConfig>,
+    /// Poses equivalent to `pose` under the object's symmetries (the same surface in the same
+    /// place; model points as given → camera), without `pose` itself; empty unless
+    /// [`ObjectSampleConfig::symmetry_aware`] and the object has a symmetry that survives the
+    /// sample's scale augmentation.
+    pub equivalent_poses: Vec<Pose>,
+    /// M̄ under each of `equivalent_poses`, in the same order.
+    pub alternatives: Vec<Assignment>,
 }
 
 impl ObjectSample {
@@ -361,18 +382,30 @@ impl ObjectSampleGenerator {
                 continue;
             };
             let mut pose = view.pose;
+            let mut copy = Pose::IDENTITY;
             if let Some(group) = &self.copy_group {
                 let (g, _) = ic_geometry::rotations::nearest_in_group(
                     &pose,
                     group,
                     &ic_geometry::rotations::paper_view_rotation(),
                 );
-                let g = group[g];
-                model_points = g.apply_all(&model_points);
-                pose = pose.compose(&g.inverse());
+                copy = group[g];
+                model_points = copy.apply_all(&model_points);
+                pose = pose.compose(&copy.inverse());
             }
             let assignment =
                 Assignment::from_pose(&model_points, &observed_points, &pose, cfg.match_threshold)?;
+            let equivalent_poses = if cfg.symmetry_aware {
+                equivalent_poses(&pose, &object.symmetries(), view.model_scale, &copy)
+            } else {
+                Vec::new()
+            };
+            let alternatives = equivalent_poses
+                .iter()
+                .map(|p| {
+                    Assignment::from_pose(&model_points, &observed_points, p, cfg.match_threshold)
+                })
+                .collect::<Result<Vec<_>, _>>()?;
             let (depth, mask) = match view.images {
                 Some((d, m)) => (Some(d), Some(m)),
                 None => (None, None),
@@ -396,6 +429,8 @@ impl ObjectSampleGenerator {
                 occluded_fraction: view.occluded_fraction,
                 truncated: view.truncated,
                 sensor: view.sensor,
+                equivalent_poses,
+                alternatives,
             });
         }
         Err(too_few_voxels(cfg, index, last_count))
@@ -451,10 +486,50 @@ impl ObjectSampleGenerator {
                 occluded_fraction: 0.0,
                 truncated: false,
                 sensor: None,
+                equivalent_poses: Vec::new(),
+                alternatives: Vec::new(),
             });
         }
         Err(too_few_voxels(cfg, index, last_count))
     }
+}
+
+/// The poses equivalent to `pose` (model points as given → camera) under `symmetries` of the
+/// corpus object (normalised frame), when the model given is the corpus object scaled per axis
+/// by `model_scale` and then rotated by `copy`: each symmetry `S = (R, t)` becomes
+/// `A·S·A⁻¹ = (G·D·R·D⁻¹·Gᵀ, G·D·t)` with `A = G·D`, kept when `D·R·D⁻¹` is still a rotation
+/// (an anisotropic scale breaks the symmetries that mix unequally scaled axes), and the
+/// equivalent pose is `pose·A·S·A⁻¹`. At most [`MAX_EQUIVALENT_POSES`], evenly spread.
+pub fn equivalent_poses(
+    pose: &Pose,
+    symmetries: &[Pose],
+    model_scale: Vec3,
+    copy: &Pose,
+) -> Vec<Pose> {
+    use glam::{DMat3, DVec3};
+    let d = DMat3::from_diagonal(model_scale.as_dvec3());
+    let d_inv = DMat3::from_diagonal(DVec3::ONE / model_scale.as_dvec3());
+    let g = copy.rotation;
+    let kept: Vec<Pose> = symmetries
+        .iter()
+        .filter_map(|s| {
+            let r = d * s.rotation * d_inv;
+            let off = (r.transpose() * r - DMat3::IDENTITY)
+                .to_cols_array()
+                .iter()
+                .fold(0.0f64, |m, x| m.max(x.abs()));
+            (off < 0.01).then(|| {
+                let r = Pose::new(r, DVec3::ZERO).orthonormalised().rotation;
+                pose.compose(&Pose::new(g * r * g.transpose(), g * (d * s.translation)))
+            })
+        })
+        .collect();
+    if kept.len() <= MAX_EQUIVALENT_POSES {
+        return kept;
+    }
+    (0..MAX_EQUIVALENT_POSES)
+        .map(|k| kept[k * kept.len() / MAX_EQUIVALENT_POSES])
+        .collect()
 }
 
 /// What [`draw_points`] drew from one view.

@@ -701,3 +701,89 @@ fn copy_rotations_keep_every_view_within_the_groups_radius_of_the_paper_family()
         "whole-sphere views are mostly far from the paper family"
     );
 }
+
+/// A box with three different sides has the three half-turns as symmetries; they commute with
+/// any per-axis scale, so every sample of it lists three equivalent poses, each turning the
+/// model by 180° onto its own surface. With the copy rotations the same three motions appear
+/// in the camera frame; without the switch, none are listed.
+#[test]
+fn symmetry_aware_samples_list_the_equivalent_poses_of_a_box() {
+    let dir = tempfile::tempdir().unwrap();
+    let half = DVec3::new(1.0, 0.6, 0.3);
+    let mesh = ic_geometry::shapes::box_mesh(half.as_vec3()).unwrap();
+    write_mesh_ply(
+        dir.path().join("00000.ply"),
+        &mesh,
+        PlyEncoding::BinaryLittleEndian,
+    )
+    .unwrap();
+    let corpus = Arc::new(
+        Corpus::mesh_folder(
+            dir.path(),
+            &FolderSplit::IdRange {
+                train: (0, 0),
+                test: (1, 1),
+            },
+            Split::Train,
+            light(),
+        )
+        .unwrap(),
+    );
+    let cfg = ObjectSampleConfig {
+        symmetry_aware: true,
+        ..small_deployment()
+    };
+    assert!(cfg.scale_augmentation.is_some() && cfg.copy_rotations == 0);
+    let with = generator(corpus.clone(), cfg.clone(), 3);
+    let copied = generator(
+        corpus.clone(),
+        ObjectSampleConfig {
+            copy_rotations: 24,
+            ..cfg.clone()
+        },
+        3,
+    );
+    let without = generator(
+        corpus,
+        ObjectSampleConfig {
+            symmetry_aware: false,
+            ..cfg
+        },
+        3,
+    );
+    // Camera-frame motions P'·P⁻¹ of a sample's equivalent poses.
+    let motions = |s: &ObjectSample| -> Vec<Pose> {
+        s.equivalent_poses
+            .iter()
+            .map(|p| p.compose(&s.pose.inverse()))
+            .collect()
+    };
+    for i in 0..4 {
+        let s = with.sample(i).unwrap();
+        assert_eq!(s.equivalent_poses.len(), 3, "sample {i}");
+        assert_eq!(s.alternatives.len(), 3);
+        let back = s.pose.inverse();
+        let scale = s.model_scale.as_dvec3();
+        for (p, a) in s.equivalent_poses.iter().zip(&s.alternatives) {
+            assert!((p.rotation_angle_to(&s.pose).to_degrees() - 180.0).abs() < 1.0);
+            // Back in the corpus box's frame, every moved model point is on the box.
+            for x in &s.model_points {
+                let w = back.apply(p.apply(x.as_dvec3())) / scale;
+                let on = (w.abs() / half).max_element();
+                assert!((on - 1.0).abs() < 0.03, "sample {i}: {w:?} is off the box");
+            }
+            assert!(
+                a.inlier_count() * 2 > s.assignment.inlier_count(),
+                "sample {i}"
+            );
+        }
+        let c = copied.sample(i).unwrap();
+        for (m, n) in motions(&s).iter().zip(&motions(&c)) {
+            assert!(m.rotation_angle_to(n) < 1e-6, "sample {i}");
+            assert!((m.translation - n.translation).length() < 1e-6);
+        }
+        let plain = without.sample(i).unwrap();
+        assert!(plain.equivalent_poses.is_empty() && plain.alternatives.is_empty());
+        assert_eq!((plain.pose, &plain.assignment), (s.pose, &s.assignment));
+    }
+}

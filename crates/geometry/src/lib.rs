@@ -44,6 +44,8 @@ pub mod rotations;
 pub mod sampling;
 /// Procedural shapes: primitives and seeded composite objects.
 pub mod shapes;
+/// Rotational symmetries of a model (discrete and continuous), found on its surface.
+pub mod symmetry;
 
 pub use camera::{Intrinsics, ViewSphere, Viewpoint, look_at};
 pub use cloud::{

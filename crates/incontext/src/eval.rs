@@ -44,8 +44,11 @@ pub struct EvalArgs {
     /// The BOP split folder (--dataset).
     #[arg(long, default_value = "test")]
     pub split: String,
-    /// Methods: ours-softmax, ours-softmax-icp, ours-ot, ours-ot-icp; repeat the flag or
-    /// separate with commas. Default: ours-softmax-icp.
+    /// Methods: ours-softmax, ours-softmax-icp, ours-ot, ours-ot-icp (one network pass, as in
+    /// the paper); ours-softmax-verify, ours-ot-verify (hypothesise and verify, as `register`
+    /// does by default); ours-softmax-sweep, ours-ot-sweep (the same sweep and
+    /// render-and-compare choice without ICP: the one-shot pose for any viewpoint). Repeat the
+    /// flag or separate with commas. Default: ours-softmax-icp.
     #[arg(long = "method", value_delimiter = ',')]
     pub methods: Vec<String>,
     /// --dataset: the output folder (default eval-out); --cases: the results file (default
@@ -132,13 +135,15 @@ impl std::str::FromStr for Method {
             "ours-softmax" => (Head::Softmax, Refine::None, false),
             "ours-softmax-icp" => (Head::Softmax, Refine::Icp, false),
             "ours-softmax-verify" => (Head::Softmax, Refine::Icp, true),
+            "ours-softmax-sweep" => (Head::Softmax, Refine::None, true),
             "ours-ot" => (Head::Ot, Refine::None, false),
             "ours-ot-icp" => (Head::Ot, Refine::Icp, false),
             "ours-ot-verify" => (Head::Ot, Refine::Icp, true),
+            "ours-ot-sweep" => (Head::Ot, Refine::None, true),
             other => {
                 return Err(CliError::input(format!(
                     "--method {other:?}: expected ours-softmax, ours-softmax-icp, ours-softmax-verify, \
-                     ours-ot, ours-ot-icp or ours-ot-verify"
+                     ours-softmax-sweep, ours-ot, ours-ot-icp, ours-ot-verify or ours-ot-sweep"
                 )));
             }
         };
@@ -819,6 +824,16 @@ mod tests {
         let names: Vec<&str> = m.iter().map(|m| m.name.as_str()).collect();
         assert_eq!(names, ["ours-ot", "ours-softmax-icp"]);
         assert_eq!((m[0].head, m[0].refine), (Head::Ot, Refine::None));
+        // The sweep methods verify the rotated copies like -verify, without ICP.
+        let m = parse_methods(&["ours-softmax-sweep".into(), "ours-ot-verify".into()]).unwrap();
+        assert_eq!(
+            (m[0].head, m[0].refine, m[0].rotations),
+            (Head::Softmax, Refine::None, Some(VERIFY_ROTATIONS))
+        );
+        assert_eq!(
+            (m[1].head, m[1].refine, m[1].rotations),
+            (Head::Ot, Refine::Icp, Some(VERIFY_ROTATIONS))
+        );
         let e = parse_methods(&["o3d-fgr".into()]).unwrap_err();
         assert_eq!(e.exit_code(), 2);
         assert!(e.message.contains("o3d-fgr"));

@@ -352,6 +352,19 @@ pub fn read_depth_mm(path: &Path, camera: &CameraFile) -> Result<DepthImage> {
     } else {
         ic_render::io::read_depth_png(path, camera.depth_scale, expected)?
     };
+    let hint = if is_exr(path)? {
+        "EXR depth is read in metres"
+    } else {
+        "is the camera's depth_scale right? (stored value × depth_scale = mm)"
+    };
+    checked_depth_mm(metres, path, hint)
+}
+
+/// Depths in metres → a depth map in millimetres, as every depth input is checked: negative,
+/// non-finite and beyond-[`MAX_DEPTH_MM`] values become missing returns (0, with a warning
+/// naming `source`), and at least one pixel must hold a depth. Errors name `source` (a file
+/// or an argument) and end with `hint` when every depth is beyond the limit.
+pub fn checked_depth_mm(metres: Image<f32>, source: &Path, hint: &str) -> Result<DepthImage> {
     let (mut valid, mut negative, mut beyond) = (0usize, 0usize, 0usize);
     let mut farthest = 0.0f32;
     let data: Vec<f32> = metres
@@ -374,32 +387,26 @@ pub fn read_depth_mm(path: &Path, camera: &CameraFile) -> Result<DepthImage> {
         .collect();
     if valid == 0 && beyond > 0 {
         return Err(bad(
-            path,
+            source,
             format!(
                 "the depth map has no usable pixel: {beyond} pixels hold depths beyond {} km (up to {farthest:e} m), \
-                 which no depth sensor measures, and the others are zero, negative, NaN or infinite; \
-                 {}",
+                 which no depth sensor measures, and the others are zero, negative, NaN or infinite; {hint}",
                 MAX_DEPTH_MM / 1e6,
-                if is_exr(path)? {
-                    "EXR depth is read in metres"
-                } else {
-                    "is the camera's depth_scale right? (stored value × depth_scale = mm)"
-                }
             ),
         ));
     }
     if valid == 0 {
         return Err(bad(
-            path,
+            source,
             "the depth map has no valid pixel (every depth is zero, negative, NaN or infinite)",
         ));
     }
     if negative > 0 {
-        tracing::warn!(file = %path.display(), negative, "negative depths are treated as missing");
+        tracing::warn!(file = %source.display(), negative, "negative depths are treated as missing");
     }
     if beyond > 0 {
         tracing::warn!(
-            file = %path.display(),
+            file = %source.display(),
             beyond,
             farthest_m = farthest,
             "depths beyond {} km are treated as missing",

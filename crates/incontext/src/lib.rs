@@ -5,7 +5,8 @@
 //! [`pipeline::Pipeline`] loads the segmentation and pose networks ([`models`]: the shipped
 //! ones are embedded in the binary), and registers an [`pipeline::Object`] (a mesh, normalised
 //! and sampled) in a depth map or onto observed points, with per-stage timings. [`inputs`]
-//! reads the user's files with checks that name the file; [`overlay`] draws results; the
+//! reads the user's files with checks that name the file, and [`arrays`] makes the same checks
+//! on inputs held in memory (the Python module's entry point); [`overlay`] draws results; the
 //! command modules ([`register`], [`demo`], [`eval`], [`render`]) are what `incontext <command>`
 //! runs. Every failure is a [`CliError`] whose kind gives the exit code: 2 bad input, 3 object
 //! not found, 1 internal.
@@ -23,6 +24,7 @@
 //! # Ok(()) }
 //! ```
 
+pub mod arrays;
 pub mod cli;
 pub mod demo;
 mod error;

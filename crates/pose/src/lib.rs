@@ -78,7 +78,8 @@ pub use error::{PoseError, Result};
 pub use estimator::{CopyEstimate, PoseEstimate, PoseEstimator, SweepOptions};
 pub use ic_nn::{adam, seeded_var_builder};
 pub use network::{
-    HeadOutput, Match, PairBatch, PoseNet, SweepBatch, correspondence_accuracy, nll_loss,
+    HeadOutput, Match, PairBatch, PoseNet, SweepBatch, correspondence_accuracy,
+    nearest_assignments, nll_loss,
 };
 pub use recover::{
     Recovered, RecoveryOptions, Refine, SampledPose, SamplingOptions, recover_pose, sample_poses,

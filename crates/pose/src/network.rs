@@ -400,7 +400,6 @@ impl PoseNet {
 /// separately and the loss is the mean of the two means. A batch with nothing to count gives a zero loss (with
 /// zero, finite gradients).
 pub fn nll_loss(out: &HeadOutput, assignments: &[&Assignment]) -> Result<Tensor> {
-    let (m, n) = (out.model_points, out.observed_points);
     let b = out.log_p.dims()[0];
     if assignments.len() != b {
         return Err(PoseError::Batch(format!(
@@ -408,82 +407,130 @@ pub fn nll_loss(out: &HeadOutput, assignments: &[&Assignment]) -> Result<Tensor>
             assignments.len()
         )));
     }
-    // Each counted entry of log P (flat index) and its group: 0 = matched pair, 1 = outlier bin.
-    let mut idx: Vec<u32> = Vec::new();
-    let mut group: Vec<u8> = Vec::new();
-    let mut per_pair: Vec<(usize, usize)> = Vec::with_capacity(b); // (start, count)
-    for (bi, a) in assignments.iter().enumerate() {
-        if a.model_count != m || a.observed_count != n || a.observed_to_model.len() != n {
-            return Err(PoseError::Batch(format!(
-                "assignment {bi} is {}×{}, the network output {m}×{n}",
-                a.model_count, a.observed_count
-            )));
-        }
-        let start = idx.len();
-        match out.head {
-            Head::Softmax => {
-                let base = bi * n * m;
-                for (j, i) in a.observed_to_model.iter().enumerate() {
-                    if let Some(i) = i {
-                        idx.push((base + j * m + *i as usize) as u32);
-                        group.push(0);
-                    }
-                }
-            }
-            Head::Ot => {
-                let base = bi * (m + 1) * (n + 1);
-                let mut model_matched = vec![false; m];
-                for (j, i) in a.observed_to_model.iter().enumerate() {
-                    let row = match i {
-                        Some(i) => {
-                            model_matched[*i as usize] = true;
-                            group.push(0);
-                            *i as usize
-                        }
-                        None => {
-                            group.push(1);
-                            m
-                        }
-                    };
-                    idx.push((base + row * (n + 1) + j) as u32);
-                }
-                for (i, matched) in model_matched.iter().enumerate() {
-                    if !matched {
-                        idx.push((base + i * (n + 1) + n) as u32);
-                        group.push(1);
-                    }
-                }
-            }
-        }
-        per_pair.push((start, idx.len() - start));
-    }
-    let counted = per_pair.iter().filter(|p| p.1 > 0).count();
+    let per_pair: Vec<(Vec<u32>, Vec<f32>)> = assignments
+        .iter()
+        .enumerate()
+        .map(|(bi, a)| pair_entries(out, bi, a))
+        .collect::<Result<_>>()?;
+    let counted = per_pair.iter().filter(|p| !p.0.is_empty()).count();
     let device = out.log_p.device();
     if counted == 0 {
         return Ok((out.log_p.sum_all()? * 0.0)?);
     }
-    let balanced = out.head == Head::Ot && out.loss == OtLoss::Balanced;
-    let mut w: Vec<f32> = Vec::with_capacity(idx.len());
-    for (start, count) in &per_pair {
-        let groups = &group[*start..start + count];
-        if balanced {
-            let matched = groups.iter().filter(|g| **g == 0).count();
-            let bins = count - matched;
-            let present = (matched > 0) as usize + (bins > 0) as usize;
-            for g in groups {
-                let in_group = if *g == 0 { matched } else { bins };
-                w.push(1.0 / (in_group as f32 * present as f32 * counted as f32));
-            }
-        } else {
-            let weight = 1.0 / (*count as f32 * counted as f32);
-            w.extend(std::iter::repeat_n(weight, *count));
-        }
+    let (mut idx, mut w) = (Vec::new(), Vec::new());
+    for (i, weights) in per_pair {
+        idx.extend(i);
+        w.extend(weights.into_iter().map(|x| x / counted as f32));
     }
     let k = idx.len();
     let idx = Tensor::from_vec(idx, k, device)?;
     let w = Tensor::from_vec(w, k, device)?.to_dtype(DType::F32)?;
     let picked = out.log_p.flatten_all()?.index_select(&idx, 0)?;
     Ok((picked.mul(&w)?.sum_all()? * -1.0)?)
+}
+
+/// The entries of `out.log_p` (flat indices) that pair `bi`'s loss counts under `a`, and
+/// their weights: the pair's share of [`nll_loss`] before the average over pairs (the weights
+/// sum to 1 when there is any entry).
+fn pair_entries(out: &HeadOutput, bi: usize, a: &Assignment) -> Result<(Vec<u32>, Vec<f32>)> {
+    let (m, n) = (out.model_points, out.observed_points);
+    if a.model_count != m || a.observed_count != n || a.observed_to_model.len() != n {
+        return Err(PoseError::Batch(format!(
+            "assignment {bi} is {}×{}, the network output {m}×{n}",
+            a.model_count, a.observed_count
+        )));
+    }
+    // Each counted entry and its group: 0 = matched pair, 1 = outlier bin.
+    let mut idx: Vec<u32> = Vec::new();
+    let mut group: Vec<u8> = Vec::new();
+    match out.head {
+        Head::Softmax => {
+            let base = bi * n * m;
+            for (j, i) in a.observed_to_model.iter().enumerate() {
+                if let Some(i) = i {
+                    idx.push((base + j * m + *i as usize) as u32);
+                    group.push(0);
+                }
+            }
+        }
+        Head::Ot => {
+            let base = bi * (m + 1) * (n + 1);
+            let mut model_matched = vec![false; m];
+            for (j, i) in a.observed_to_model.iter().enumerate() {
+                let row = match i {
+                    Some(i) => {
+                        model_matched[*i as usize] = true;
+                        group.push(0);
+                        *i as usize
+                    }
+                    None => {
+                        group.push(1);
+                        m
+                    }
+                };
+                idx.push((base + row * (n + 1) + j) as u32);
+            }
+            for (i, matched) in model_matched.iter().enumerate() {
+                if !matched {
+                    idx.push((base + i * (n + 1) + n) as u32);
+                    group.push(1);
+                }
+            }
+        }
+    }
+    let count = idx.len();
+    let balanced = out.head == Head::Ot && out.loss == OtLoss::Balanced;
+    let w: Vec<f32> = if balanced {
+        let matched = group.iter().filter(|g| **g == 0).count();
+        let bins = count - matched;
+        let present = (matched > 0) as usize + (bins > 0) as usize;
+        group
+            .iter()
+            .map(|g| {
+                let in_group = if *g == 0 { matched } else { bins };
+                1.0 / (in_group as f32 * present as f32)
+            })
+            .collect()
+    } else {
+        vec![1.0 / count.max(1) as f32; count]
+    };
+    Ok((idx, w))
+}
+
+/// For each pair, which of its candidate ground truths (`candidates[b]`: the true pose's M̄
+/// first, then M̄ under each pose equivalent to it by the object's symmetry) the current
+/// output fits best, i.e. has the lowest [`nll_loss`] share: the symmetric-equivalent pose
+/// nearest the prediction. A pair with one candidate gets 0 without reading the output.
+pub fn nearest_assignments(
+    out: &HeadOutput,
+    candidates: &[Vec<&Assignment>],
+) -> Result<Vec<usize>> {
+    if candidates.iter().all(|c| c.len() <= 1) {
+        return Ok(vec![0; candidates.len()]);
+    }
+    let log_p = out.log_p.flatten_all()?.to_vec1::<f32>()?;
+    candidates
+        .iter()
+        .enumerate()
+        .map(|(bi, cands)| {
+            let mut best = (0, f32::INFINITY);
+            for (k, a) in cands.iter().enumerate() {
+                let (idx, w) = pair_entries(out, bi, a)?;
+                if idx.is_empty() {
+                    continue;
+                }
+                let loss: f32 = idx
+                    .iter()
+                    .zip(&w)
+                    .map(|(i, w)| -log_p[*i as usize] * w)
+                    .sum();
+                if loss < best.1 {
+                    best = (k, loss);
+                }
+            }
+            Ok(best.0)
+        })
+        .collect()
 }
 
 /// Fraction of matched observed points whose arg-max model point is the true one (`None`

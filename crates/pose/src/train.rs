@@ -13,7 +13,7 @@ use ic_data::{Assignment, ObjectSample};
 use crate::checkpoint::{self, CONFIG_KEY, STATE_KEY, TrainState};
 use crate::config::PoseConfig;
 use crate::estimator::PoseEstimator;
-use crate::network::{PairBatch, PoseNet, correspondence_accuracy, nll_loss};
+use crate::network::{PairBatch, PoseNet, correspondence_accuracy, nearest_assignments, nll_loss};
 use crate::{PoseError, Result};
 use ic_nn::adam::Adam;
 use ic_nn::seeded_var_builder;
@@ -157,14 +157,24 @@ impl Trainer {
         Ok(())
     }
 
-    /// One step on ic_data samples.
+    /// One step on ic_data samples. A sample that lists poses equivalent to its true one
+    /// (`ObjectSample::alternatives`, a symmetric object) is scored against the equivalent
+    /// ground truth nearest the network's prediction ([`nearest_assignments`]), so the loss
+    /// never asks for the one turn of a can that its depth cannot show.
     pub fn step(&mut self, samples: &[ObjectSample]) -> Result<StepStats> {
         let pairs: Vec<(&[Vec3], &[Vec3])> = samples
             .iter()
             .map(|s| (&s.model_points[..], &s.observed_points[..]))
             .collect();
-        let assignments: Vec<&Assignment> = samples.iter().map(|s| &s.assignment).collect();
-        self.step_pairs(&pairs, &assignments)
+        let candidates: Vec<Vec<&Assignment>> = samples
+            .iter()
+            .map(|s| {
+                std::iter::once(&s.assignment)
+                    .chain(&s.alternatives)
+                    .collect()
+            })
+            .collect();
+        self.step_candidates(&pairs, &candidates)
     }
 
     /// One step: forward (training mode), loss, backward, Adam.
@@ -173,8 +183,22 @@ impl Trainer {
         pairs: &[(&[Vec3], &[Vec3])],
         assignments: &[&Assignment],
     ) -> Result<StepStats> {
+        let candidates: Vec<Vec<&Assignment>> = assignments.iter().map(|a| vec![*a]).collect();
+        self.step_candidates(pairs, &candidates)
+    }
+
+    /// One step where each pair's ground truth is the candidate nearest the prediction.
+    fn step_candidates(
+        &mut self,
+        pairs: &[(&[Vec3], &[Vec3])],
+        candidates: &[Vec<&Assignment>],
+    ) -> Result<StepStats> {
         let batch = PairBatch::new(pairs, self.config.net.k, &self.device)?;
         let out = self.net.forward_t(&batch, true)?;
+        let chosen = nearest_assignments(&out, candidates)?;
+        let assignments: Vec<&Assignment> =
+            candidates.iter().zip(&chosen).map(|(c, k)| c[*k]).collect();
+        let assignments = &assignments[..];
         let loss = nll_loss(&out, assignments)?;
         let grads = loss.backward()?;
         self.adam.step(&grads)?;

@@ -514,3 +514,61 @@ fn pruned_sweep_keeps_copy_zero_and_matches_the_full_sweep_on_the_kept_copies() 
     // Pruning is deterministic.
     assert_eq!(est.net().forward_sweep_pruned(&sweep, 4).unwrap().1, kept);
 }
+
+/// Of a pair's candidate ground truths (the true pose's, then a symmetric equivalent's), the
+/// one the output already fits is chosen, per pair; its loss is the lower one; a pair with a
+/// single candidate keeps it; a candidate that counts nothing never wins.
+#[test]
+fn nearest_assignments_pick_the_equivalent_ground_truth_the_output_fits() {
+    // Softmax, 2 pairs, N = 2 observed × M = 2 model points. Pair 0 believes observed j ↔
+    // model 1 − j (the "turned" truth), pair 1 believes j ↔ j.
+    let p = |x: f32| x.ln();
+    let log_p = Tensor::from_vec(
+        vec![
+            p(0.1),
+            p(0.9),
+            p(0.8),
+            p(0.2), // pair 0
+            p(0.7),
+            p(0.3),
+            p(0.4),
+            p(0.6), // pair 1
+        ],
+        (2, 2, 2),
+        &Device::Cpu,
+    )
+    .unwrap();
+    let out = ic_pose::HeadOutput {
+        head: Head::Softmax,
+        log_p,
+        model_points: 2,
+        observed_points: 2,
+        loss: ic_pose::OtLoss::Balanced,
+    };
+    let a = |v: [Option<u32>; 2]| Assignment {
+        model_count: 2,
+        observed_count: 2,
+        observed_to_model: v.to_vec(),
+    };
+    let straight = a([Some(0), Some(1)]);
+    let turned = a([Some(1), Some(0)]);
+    let empty = a([None, None]);
+    let chosen = ic_pose::nearest_assignments(
+        &out,
+        &[vec![&straight, &turned, &empty], vec![&straight, &turned]],
+    )
+    .unwrap();
+    assert_eq!(chosen, [1, 0]);
+    let loss = |a0: &Assignment, a1: &Assignment| {
+        nll_loss(&out, &[a0, a1])
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap()
+    };
+    assert!(loss(&turned, &straight) < loss(&straight, &straight));
+    assert!(loss(&turned, &straight) < loss(&turned, &turned));
+    assert_eq!(
+        ic_pose::nearest_assignments(&out, &[vec![&turned], vec![&straight]]).unwrap(),
+        [0, 0]
+    );
+}
