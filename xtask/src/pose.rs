@@ -9,6 +9,7 @@
 //! as deployment (`ic_data::ObjectSampleConfig::deployment`); validation uses the same
 //! protocol on the `val` objects.
 
+use std::collections::HashMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -443,12 +444,25 @@ pub fn train(args: TrainArgs) -> Result<()> {
     });
     eprintln!("data {}", serde_json::to_string(&data)?);
     check_data_record(&args.out.join("data.json"), &data, resuming)?;
+    // The objects' symmetries found by earlier parts of the run (the search takes ≈ 0.3 s per
+    // object as it is first drawn); saved again with every checkpoint.
+    let symmetries_path = args.out.join("symmetries.json");
+    let mut symmetries = read_symmetry_cache(&symmetries_path)?;
+    if !symmetries.is_empty() {
+        eprintln!(
+            "symmetries of {} objects from {}",
+            symmetries.len(),
+            symmetries_path.display()
+        );
+    }
+    train_corpus.set_known_symmetries(symmetries.clone());
+    val_corpus.set_known_symmetries(symmetries.clone());
     let generator = Arc::new(ObjectSampleGenerator::new(
-        train_corpus,
+        train_corpus.clone(),
         scfg.clone(),
         seed,
     )?);
-    let val_gen = ObjectSampleGenerator::new(val_corpus, scfg, VALIDATION_SEED)?;
+    let val_gen = ObjectSampleGenerator::new(val_corpus.clone(), scfg, VALIDATION_SEED)?;
     let val_set: Vec<ObjectSample> = (0..cfg.train.validation_count as u64)
         .map(|i| val_gen.sample(i))
         .collect::<Result<_, _>>()?;
@@ -559,6 +573,9 @@ pub fn train(args: TrainArgs) -> Result<()> {
         let stop = run::checkpoint(last, &mut last_ckpt, args.checkpoint_secs, || {
             csv.flush()?;
             val_csv.flush()?;
+            symmetries.extend(train_corpus.found_symmetries());
+            symmetries.extend(val_corpus.found_symmetries());
+            write_symmetry_cache(&symmetries_path, &symmetries)?;
             Ok(trainer.save(&latest)?)
         })?;
         if stop {
@@ -581,6 +598,40 @@ pub fn train(args: TrainArgs) -> Result<()> {
 /// Writes `path` (the run's data: protocol, objects, sample configuration) for a fresh run;
 /// when resuming, warns if the data now differ from the record (the run then no longer
 /// matches an uninterrupted one) and keeps the record.
+/// The symmetry cache of a run (`<out>/symmetries.json`): object id → motions, valid only
+/// for the search settings it records (`ic_data::TRAINING_SYMMETRY_OPTIONS`); absent or made
+/// with other settings → empty.
+fn read_symmetry_cache(path: &Path) -> Result<HashMap<String, Vec<ic_geometry::Pose>>> {
+    let Ok(text) = std::fs::read_to_string(path) else {
+        return Ok(HashMap::new());
+    };
+    let doc: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+    if doc["options"] != serde_json::to_value(ic_data::TRAINING_SYMMETRY_OPTIONS)? {
+        eprintln!(
+            "{}: made with other search settings; searching again",
+            path.display()
+        );
+        return Ok(HashMap::new());
+    }
+    serde_json::from_value(doc["objects"].clone())
+        .with_context(|| format!("reading {}: objects", path.display()))
+}
+
+fn write_symmetry_cache(
+    path: &Path,
+    symmetries: &HashMap<String, Vec<ic_geometry::Pose>>,
+) -> Result<()> {
+    let sorted: std::collections::BTreeMap<_, _> = symmetries.iter().collect();
+    let bytes = serde_json::to_vec(&serde_json::json!({
+        "what": "rotational symmetries of the run's objects (normalised frame), by id",
+        "options": ic_data::TRAINING_SYMMETRY_OPTIONS,
+        "objects": sorted,
+    }))?;
+    ic_geometry::io::write_atomic_with(path, |w| std::io::Write::write_all(w, &bytes), |e| e)
+        .with_context(|| format!("writing {}", path.display()))
+}
+
 fn check_data_record(path: &Path, data: &serde_json::Value, resuming: bool) -> Result<()> {
     if resuming && let Ok(text) = std::fs::read_to_string(path) {
         let old: serde_json::Value =

@@ -353,6 +353,8 @@ pub struct Corpus {
     skipped: AtomicUsize,
     /// Mixture sources (empty for a single-source corpus).
     groups: Vec<Group>,
+    /// Symmetries known before their objects load (a run's saved ones), by object id.
+    known_symmetries: Mutex<HashMap<String, Arc<Vec<ic_geometry::Pose>>>>,
 }
 
 impl fmt::Debug for Corpus {
@@ -406,6 +408,7 @@ impl Corpus {
             cache: Mutex::new(HashMap::new()),
             skipped: AtomicUsize::new(0),
             groups: Vec::new(),
+            known_symmetries: Mutex::new(HashMap::new()),
         })
     }
 
@@ -788,6 +791,15 @@ impl Corpus {
         };
         let result = slot.get_or_init(|| {
             let r = load_object(entry, index, &self.options);
+            if let Ok(object) = &r {
+                let known = self
+                    .known_symmetries
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner());
+                if let Some(s) = known.get(&object.id) {
+                    let _ = object.symmetries.set(s.clone());
+                }
+            }
             if let Err((path, message)) = &r {
                 self.skipped.fetch_add(1, Ordering::Relaxed);
                 tracing::warn!(path = %path.display(), "unusable mesh: {message}");
@@ -797,6 +809,27 @@ impl Corpus {
         result
             .clone()
             .map_err(|(path, message)| DataError::BadMesh { path, message })
+    }
+
+    /// Symmetries to use instead of searching (e.g. the ones a run saved with
+    /// [`Corpus::found_symmetries`], computed with [`TRAINING_SYMMETRY_OPTIONS`] on the same
+    /// meshes), by object id; objects loaded later take them.
+    pub fn set_known_symmetries(&self, known: HashMap<String, Vec<ic_geometry::Pose>>) {
+        let mut k = self
+            .known_symmetries
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        k.extend(known.into_iter().map(|(id, s)| (id, Arc::new(s))));
+    }
+
+    /// The symmetries of every loaded object whose search has run (or was given), by id.
+    pub fn found_symmetries(&self) -> HashMap<String, Vec<ic_geometry::Pose>> {
+        let cache = self.cache.lock().unwrap_or_else(|e| e.into_inner());
+        cache
+            .values()
+            .filter_map(|slot| slot.get()?.as_ref().ok())
+            .filter_map(|o| Some((o.id.clone(), o.symmetries.get()?.as_ref().clone())))
+            .collect()
     }
 
     /// The object with this id, if listed.

@@ -56,7 +56,7 @@ pub mod export;
 pub use assignment::Assignment;
 pub use corpus::{
     Corpus, CorpusInfo, CorpusKind, CorpusObject, CorpusOptions, FolderSplit, MixturePart,
-    ObjectEntry, ObjectSource, OnBadMesh, SourceInfo, Split,
+    ObjectEntry, ObjectSource, OnBadMesh, SourceInfo, Split, TRAINING_SYMMETRY_OPTIONS,
 };
 pub use deploy::SamplingProtocol;
 pub use error::DataError;

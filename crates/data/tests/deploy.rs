@@ -787,3 +787,20 @@ fn symmetry_aware_samples_list_the_equivalent_poses_of_a_box() {
         assert_eq!((plain.pose, &plain.assignment), (s.pose, &s.assignment));
     }
 }
+
+/// Symmetries given to a corpus are what its objects report when they load (no search), and
+/// the corpus lists every object's symmetries once known: what a resumed run reloads.
+#[test]
+fn known_symmetries_replace_the_search_and_found_ones_are_listed() {
+    let corpus = corpus(3, Split::Train);
+    let id0 = corpus.entries()[0].id.clone();
+    let half_turn = Pose::from_axis_angle(DVec3::Z, std::f64::consts::PI, DVec3::ZERO);
+    corpus.set_known_symmetries([(id0.clone(), vec![half_turn])].into_iter().collect());
+    assert!(corpus.found_symmetries().is_empty());
+    assert_eq!(*corpus.object(0).unwrap().symmetries(), vec![half_turn]);
+    let searched = corpus.object(1).unwrap().symmetries();
+    let found = corpus.found_symmetries();
+    assert_eq!(found.len(), 2);
+    assert_eq!(found[&id0], vec![half_turn]);
+    assert_eq!(found[&corpus.entries()[1].id], *searched);
+}
