@@ -234,30 +234,28 @@ fn python_tests() -> Result<()> {
         ),
     }
     // A fresh venv each run: nothing left from an earlier one can hide a missing dependency.
-    if venv.exists() {
-        std::fs::remove_dir_all(&venv)
-            .with_context(|| format!("removing the old {}", venv.display()))?;
-    }
-    if wheels.exists() {
-        std::fs::remove_dir_all(&wheels)
-            .with_context(|| format!("removing the old {}", wheels.display()))?;
+    for dir in [&venv, &wheels] {
+        if dir.exists() {
+            std::fs::remove_dir_all(dir)
+                .with_context(|| format!("removing the old {}", dir.display()))?;
+        }
     }
     let venv_s = venv.to_string_lossy().into_owned();
     run(Path::new(&python), &["-m", "venv", &venv_s])?;
     let bin = venv.join("bin");
     let py = bin.join("python");
-    run(
-        &py,
-        &[
+    let pip_install = |args: &[&str]| {
+        let mut all = vec![
             "-m",
             "pip",
             "install",
             "--quiet",
             "--disable-pip-version-check",
-            "-r",
-            "python/requirements-test.txt",
-        ],
-    )?;
+        ];
+        all.extend_from_slice(args);
+        run(&py, &all)
+    };
+    pip_install(&["-r", "python/requirements-test.txt"])?;
     let py_s = py.to_string_lossy().into_owned();
     let wheels_s = wheels.to_string_lossy().into_owned();
     run(
@@ -280,17 +278,7 @@ fn python_tests() -> Result<()> {
         .find(|p| p.extension().is_some_and(|e| e == "whl"))
         .with_context(|| format!("maturin wrote no wheel into {}", wheels.display()))?;
     let wheel_s = wheel.to_string_lossy().into_owned();
-    run(
-        &py,
-        &[
-            "-m",
-            "pip",
-            "install",
-            "--quiet",
-            "--disable-pip-version-check",
-            &wheel_s,
-        ],
-    )?;
+    pip_install(&[&wheel_s])?;
     run(&py, &["-m", "pytest", "python/tests", "-q"])
 }
 

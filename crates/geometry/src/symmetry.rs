@@ -200,6 +200,7 @@ pub fn find_symmetries(
 
     // Continuous axes: every step about an accepted motion's axis passes.
     let mut continuous_axes: Vec<DVec3> = Vec::new();
+    let steps = (360.0 / CONTINUOUS_STEP_DEG).round() as usize;
     let mut axis_points: Vec<DVec3> = Vec::new();
     for (_, motion) in &accepted {
         // Two continuous axes make every rotation a symmetry (a sphere): nothing to add.
@@ -216,7 +217,6 @@ pub fn find_symmetries(
         {
             continue;
         }
-        let steps = (360.0 / CONTINUOUS_STEP_DEG).round() as usize;
         let all_pass = (1..steps).all(|k| {
             let angle = (k as f64 * CONTINUOUS_STEP_DEG).to_radians();
             scorer.residual(&about(through, axis, angle)) <= threshold
@@ -228,7 +228,6 @@ pub fn find_symmetries(
     }
     let mut motions: Vec<Pose> = accepted.into_iter().map(|(_, s)| s).collect();
     for (axis, through) in continuous_axes.iter().zip(&axis_points) {
-        let steps = (360.0 / CONTINUOUS_STEP_DEG).round() as usize;
         let discrete = motions.clone();
         for k in 1..steps {
             let step = about(

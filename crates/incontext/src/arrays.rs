@@ -123,19 +123,7 @@ pub fn depth_mm(
     camera: &CameraFile,
     what: &str,
 ) -> Result<DepthImage> {
-    let k = &camera.intrinsics;
-    if (width, height) != (k.width, k.height) {
-        return Err(CliError::input(format!(
-            "{what}: image is {width}×{height}, expected {}×{}",
-            k.width, k.height
-        )));
-    }
-    if values.len() != width as usize * height as usize {
-        return Err(CliError::internal(format!(
-            "{what}: {} values for a {width}×{height} image",
-            values.len()
-        )));
-    }
+    check_size(values.len(), width, height, &camera.intrinsics, what)?;
     let metres = Image {
         width,
         height,
@@ -148,6 +136,23 @@ pub fn depth_mm(
     )
 }
 
+/// An image of `width × height` pixels given as `len` values must have the camera's size
+/// (bad input otherwise) and one value per pixel (the caller's bug otherwise).
+fn check_size(len: usize, width: u32, height: u32, k: &Intrinsics, what: &str) -> Result<()> {
+    if (width, height) != (k.width, k.height) {
+        return Err(CliError::input(format!(
+            "{what}: image is {width}×{height}, expected {}×{}",
+            k.width, k.height
+        )));
+    }
+    if len != width as usize * height as usize {
+        return Err(CliError::internal(format!(
+            "{what}: {len} values for a {width}×{height} image"
+        )));
+    }
+    Ok(())
+}
+
 /// An object mask (`true` = the object's pixel, row-major) of the camera's size, with the
 /// checks of [`inputs::read_mask`]: the size, and at least one pixel set. Errors start with
 /// `what`.
@@ -158,18 +163,7 @@ pub fn mask(
     intrinsics: &Intrinsics,
     what: &str,
 ) -> Result<Mask> {
-    if (width, height) != (intrinsics.width, intrinsics.height) {
-        return Err(CliError::input(format!(
-            "{what}: image is {width}×{height}, expected {}×{}",
-            intrinsics.width, intrinsics.height
-        )));
-    }
-    if values.len() != width as usize * height as usize {
-        return Err(CliError::internal(format!(
-            "{what}: {} values for a {width}×{height} image",
-            values.len()
-        )));
-    }
+    check_size(values.len(), width, height, intrinsics, what)?;
     if !values.iter().any(|&m| m) {
         return Err(CliError::input(format!(
             "{what}: the mask is empty (no pixel is set)"
