@@ -92,6 +92,10 @@ pub struct EvalArgs {
     /// pipeline's.
     #[arg(long)]
     pub sampled_hypotheses: Option<usize>,
+    /// Passes of the network over each verified hypothesis of the `-verify` and `-sweep`
+    /// methods (see `register`); default: the pipeline's.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4))]
+    pub network_passes: Option<u32>,
 }
 
 impl EvalArgs {
@@ -109,6 +113,9 @@ impl EvalArgs {
             sampled_hypotheses: self
                 .sampled_hypotheses
                 .unwrap_or(PipelineOptions::default().sampled_hypotheses),
+            network_passes: self
+                .network_passes
+                .map_or(PipelineOptions::default().network_passes, |p| p as usize),
             ..PipelineOptions::default()
         }
     }

@@ -333,6 +333,13 @@ pub struct PipelineOptions {
     /// Rotated copies that go on through the transformer after the DGCNN (the unrotated copy
     /// and those whose features best match the observed ones); 0 = all.
     pub sweep_keep: usize,
+    /// Passes of the network when hypotheses are verified: 1 = the sweep's pass only; each
+    /// further pass registers, for each of the previous pass's `verify_top` hypotheses, a
+    /// copy of the model turned so that the hypothesis's rotation sits at the centre of the
+    /// rotations the network was trained on, and adds that pass's pose as one more verified
+    /// hypothesis (the network alone, no ICP). The originals stay: a pass can turn a right
+    /// pose into a near-symmetric wrong one (`docs/decisions.md`).
+    pub network_passes: usize,
 }
 
 impl Default for PipelineOptions {
@@ -354,6 +361,7 @@ impl Default for PipelineOptions {
             sweep_points: 320,
             sampled_hypotheses: 2,
             sweep_keep: 0,
+            network_passes: 1,
         }
     }
 }
@@ -776,6 +784,7 @@ impl Pipeline {
             m => (m, m * 3 / 4),
         };
         let mut candidates: Vec<(f64, Pose, ic_pose::PoseEstimate)> = Vec::new();
+        let mut first_draw = None;
         // The hypotheses are ranked by the point-distance confidence on a few of the voxels.
         let ranking: Vec<Vec3> = strided(&voxels, RANKING_POINTS).copied().collect();
         for h in 0..self.options.hypotheses.max(1) {
@@ -800,6 +809,7 @@ impl Pipeline {
                 .estimator
                 .estimate_rotations(&x, &rotations, &y, &sweep)?;
             seconds.pose_network += t.elapsed().as_secs_f64();
+            first_draw.get_or_insert((x, y));
             let t = Instant::now();
             let mut first_error = None;
             for e in estimates {
@@ -830,12 +840,24 @@ impl Pipeline {
                 return Err(err.into());
             }
         }
-        let made = candidates.len();
         // The first draw's unrotated estimate (the paper's pipeline) is always verified; the
         // others compete for the remaining places by the point-distance confidence.
         let first = candidates.remove(0);
         candidates.sort_by(|a, b| b.0.total_cmp(&a.0));
         candidates.insert(0, first);
+        let mut top = self.options.verify_top.max(1).min(candidates.len());
+        if let Some((x, y)) = &first_draw {
+            let t = Instant::now();
+            let mut from = 0;
+            for _ in 1..self.options.network_passes.max(1) {
+                let passed = self.network_pass(x, y, &candidates[from..top])?;
+                from = top;
+                top += passed.len();
+                candidates.splice(from..from, passed);
+            }
+            seconds.pose_network += t.elapsed().as_secs_f64();
+        }
+        let made = candidates.len();
         let shape = match &object.mesh {
             Some(mesh) => ModelShape::Mesh(mesh.clone()),
             None => ModelShape::points(object.points.clone(), 0.5 * self.options.voxel_size),
@@ -846,7 +868,7 @@ impl Pipeline {
         // The hypotheses are refined on at most VERIFY_ICP_POINTS voxels; the winner again on
         // up to `icp_max_points` below.
         let coarse = VERIFY_ICP_POINTS.min(self.options.icp_max_points);
-        for (_, one_shot, estimate) in candidates.iter().take(self.options.verify_top.max(1)) {
+        for (_, one_shot, estimate) in candidates.iter().take(top) {
             let (pose, icp) = self.refine_with(
                 target.as_ref(),
                 &voxels,
@@ -897,7 +919,7 @@ impl Pipeline {
             }
         }
         seconds.total = clock.elapsed().as_secs_f64();
-        let checked = self.options.verify_top.max(1).min(made);
+        let checked = top;
         // Ambiguity: the best score among the verified poses that are not equivalent to the
         // winner (ADD-S between them of at least 0.1 of the diameter). A view that another,
         // different pose explains about as well cannot be trusted, however well it is explained.
@@ -923,6 +945,41 @@ impl Pipeline {
         r.rival_score = Some(rival);
         r.evidence = Some(evidence);
         Ok(r)
+    }
+
+    /// One more pass of the network over `candidates`, in one batch: the model points `x`
+    /// (model frame) turned so that each candidate's rotation R̂ becomes the centre of the
+    /// network's training rotations ([`ic_geometry::rotations::paper_view_rotation`]), against
+    /// the observed points `y` (camera frame): one new hypothesis per candidate whose pass
+    /// gives a pose, ranked like its candidate.
+    fn network_pass(
+        &self,
+        x: &[Vec3],
+        y: &[Vec3],
+        candidates: &[(f64, Pose, ic_pose::PoseEstimate)],
+    ) -> Result<Vec<(f64, Pose, ic_pose::PoseEstimate)>> {
+        // The copy G with R̂·G⁻¹ = P, the centre of the rotations the network was trained on.
+        let centre_inv = ic_geometry::rotations::paper_view_rotation().inverse();
+        let turns: Vec<Pose> = candidates
+            .iter()
+            .map(|(_, pose, _)| {
+                centre_inv.compose(&Pose {
+                    rotation: pose.rotation,
+                    translation: ic_geometry::glam::DVec3::ZERO,
+                })
+            })
+            .collect();
+        let passes = self.pose.estimator.estimate_rotations(
+            x,
+            &turns,
+            y,
+            &ic_pose::SweepOptions::default(),
+        )?;
+        Ok(passes
+            .into_iter()
+            .flatten()
+            .map(|c| (candidates[c.rotation].0, c.estimate.pose, c.estimate))
+            .collect())
     }
 
     /// Fraction of `voxels` (camera frame) within [`MATCH_DISTANCE`] of the model's dense

@@ -110,6 +110,12 @@ pub struct NetworkArgs {
     /// correspondences (seeded RANSAC over the soft assignment), added to the hypotheses.
     #[arg(long, default_value_t = PipelineOptions::default().sampled_hypotheses)]
     pub sampled_hypotheses: usize,
+    /// With --rotations: passes of the network over each verified hypothesis. Each pass after
+    /// the first registers a copy of the model turned by the hypothesis's rotation, where the
+    /// network is most precise, before ICP and verification.
+    #[arg(long, default_value_t = PipelineOptions::default().network_passes as u32,
+          value_parser = clap::value_parser!(u32).range(1..=4))]
+    pub network_passes: u32,
 }
 
 pub fn parse_rotations(s: &str) -> std::result::Result<usize, String> {
@@ -154,6 +160,7 @@ impl NetworkArgs {
             verify_top: self.verify_top as usize,
             sweep_keep: self.sweep_keep,
             sampled_hypotheses: self.sampled_hypotheses,
+            network_passes: self.network_passes as usize,
             ..PipelineOptions::default()
         };
         Pipeline::load(
