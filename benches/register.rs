@@ -65,7 +65,7 @@ fn register(c: &mut Criterion) {
             rotations,
             ..PipelineOptions::default()
         };
-        Pipeline::load(None, None, None, true, options).unwrap()
+        Pipeline::builder().options(options).build().unwrap()
     };
     let mut group = c.benchmark_group("register_640x480");
     group.sample_size(10);

@@ -603,15 +603,19 @@ impl Registrar {
         let with_seg = seg_model.is_some() || incontext::models::SEG.available();
         let (bare, segmenting) = py
             .detach(|| -> Result<_, CliError> {
-                let bare = Pipeline::load(pose_model.as_deref(), head, None, false, options)?;
+                let mut builder = Pipeline::builder().options(options);
+                if let Some(head) = head {
+                    builder = builder.head(head);
+                }
+                if let Some(path) = &pose_model {
+                    builder = builder.pose_model(path);
+                }
+                let bare = builder.clone().segmentation(false).build()?;
                 let segmenting = if with_seg {
-                    Some(Pipeline::load(
-                        pose_model.as_deref(),
-                        head,
-                        seg_model.as_deref(),
-                        true,
-                        options,
-                    )?)
+                    if let Some(path) = &seg_model {
+                        builder = builder.seg_model(path);
+                    }
+                    Some(builder.segmentation(true).build()?)
                 } else {
                     None
                 };

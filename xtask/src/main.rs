@@ -6,7 +6,7 @@
 //!   `INCONTEXT_SKIP_BENCH` is set).
 //! - `cargo xtask bench [--quick] [--peers]` measures accuracy and speed of our methods beside
 //!   Open3D's on fixed case sets and writes `docs/results.md` and `docs/results.json` (see
-//!   `bench.rs`; `--quick` is the small version CI runs, written under `target/bench-quick/`).
+//!   `bench/`; `--quick` is the small version CI runs, written under `target/bench-quick/`).
 //!   `cargo xtask bench --criterion [NAME…]` (or `cargo xtask bench NAME…`) runs the criterion
 //!   benchmarks under `benches/` (all by default), then prints each benchmark's median next to
 //!   its ratio to the baseline measured in the same run, and writes the same table to
@@ -36,10 +36,6 @@
 //!   segmentation checkpoint's post-processing settings (chosen on validation scenes).
 
 mod bench;
-mod bench_cases;
-mod bench_report;
-mod bench_run;
-mod bench_speed;
 mod data;
 mod pose;
 mod run;

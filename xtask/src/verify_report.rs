@@ -20,6 +20,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use ic_eval::cases::CaseFolder;
 use ic_eval::{Calibration, ReliabilityBin, reliability_bins};
 use ic_geometry::Pose;
 use serde_json::{Value, json};
@@ -131,16 +132,16 @@ fn parse_set(s: &str) -> Result<(String, PathBuf, Vec<PathBuf>)> {
 fn read_cases(dir: &Path) -> Result<BTreeMap<String, Case>> {
     let mut out = BTreeMap::new();
     // `dir` may be a single case folder, as `read_case_truths` allows.
-    let single = dir.join("gt.json").is_file();
+    let single = CaseFolder::new(dir).is_case();
     for t in ic_eval::cases::read_case_truths(dir)? {
-        let case_dir = if single {
-            dir.to_path_buf()
+        let case = if single {
+            CaseFolder::new(dir)
         } else {
-            dir.join(&t.case)
+            CaseFolder::new(dir.join(&t.case))
         };
-        let points = ic_geometry::io::read_ply_cloud(case_dir.join("source.ply"))?.points;
+        let points = ic_geometry::io::read_ply_cloud(case.source())?.points;
         let diameter = ic_eval::diameter(&points);
-        let meta = case_dir.join("meta.json");
+        let meta = case.meta();
         let object_id = match std::fs::read_to_string(&meta) {
             Ok(text) => serde_json::from_str::<Value>(&text)
                 .with_context(|| format!("parsing {}", meta.display()))?["object_id"]
@@ -186,12 +187,9 @@ fn score_lines(
                     i + 1
                 )
             })?;
+            // The line's "R" and "t" in the pose's serde form (checked to be a rotation).
             let pose = (v["ok"].as_bool() == Some(true))
-                .then(|| {
-                    let r: [[f64; 3]; 3] = serde_json::from_value(v["R"].clone()).ok()?;
-                    let t: [f64; 3] = serde_json::from_value(v["t"].clone()).ok()?;
-                    Pose::from_row_major(r, t).ok()
-                })
+                .then(|| serde_json::from_value::<Pose>(v.clone()).ok())
                 .flatten();
             let (rotation_deg, add_s_rel) = match pose {
                 Some(p) => (

@@ -1,11 +1,13 @@
-//! Registration cases for other tools (Open3D, TEASER++, our own CLI): one folder per case.
+//! Registration cases for other tools (Open3D, TEASER++, our own CLI): one folder per case,
+//! laid out as [`CaseFolder`] says (the format's one owner, in `ic_eval::cases` so that the
+//! scorer, which depends on `ic_geometry` only, reads what this module writes):
 //!
 //! - `source.ply`: the model points X (model frame, normalised units), binary little-endian
 //!   `float x y z`;
 //! - `target.ply`: the observed points — the N sampled object points (object alone) or the
 //!   whole voxelised scene (room) — camera frame, normalised units;
-//! - `gt.json`: `{"R": [[…], […], […]], "t": [x, y, z]}` with `target ≈ R·source + t`
-//!   (R row-major);
+//! - `gt.json`: the pose in [`Pose`]'s serde form, `{"R": [[…], […], […]], "t": [x, y, z]}`
+//!   with `target ≈ R·source + t` (R row-major, model → camera, normalised units);
 //! - `meta.json`: object id, sample index, seed, counts, inlier rate;
 //! - room cases also hold `depth.png` (16-bit, `stored × depth_scale = mm`, 1 normalised unit
 //!   = `unit_mm` mm) and `camera.json` (`cam_K` row-major 9 numbers, `depth_scale`, `width`,
@@ -20,6 +22,8 @@ use std::path::Path;
 use ic_geometry::io::{PlyEncoding, write_ply};
 use ic_geometry::{Image, PointCloud, Pose};
 use serde_json::{Value, json};
+
+pub use ic_eval::cases::CaseFolder;
 
 use crate::{DataError, ObjectSample, ROOM_UNIT_MM, RoomSample};
 
@@ -36,10 +40,9 @@ pub(crate) fn write_json_atomic(path: &Path, value: &Value) -> Result<(), DataEr
     Ok(())
 }
 
-/// `{"R": rows, "t": [x, y, z]}`.
+/// `{"R": rows, "t": [x, y, z]}`: [`Pose`]'s serde form.
 pub fn pose_json(pose: &Pose) -> Value {
-    let t = pose.translation;
-    json!({"R": pose.rotation_row_major(), "t": [t.x, t.y, t.z]})
+    json!(pose)
 }
 
 fn write_common(
@@ -50,18 +53,19 @@ fn write_common(
     meta: Value,
 ) -> Result<(), DataError> {
     std::fs::create_dir_all(dir).map_err(DataError::io(dir))?;
+    let case = CaseFolder::new(dir);
     write_ply(
-        dir.join("source.ply"),
+        case.source(),
         &PointCloud::from_points(source.to_vec()),
         PlyEncoding::BinaryLittleEndian,
     )?;
     write_ply(
-        dir.join("target.ply"),
+        case.target(),
         &PointCloud::from_points(target.to_vec()),
         PlyEncoding::BinaryLittleEndian,
     )?;
-    write_json_atomic(&dir.join("gt.json"), &pose_json(pose))?;
-    write_json_atomic(&dir.join("meta.json"), &meta)
+    write_json_atomic(&case.gt(), &pose_json(pose))?;
+    write_json_atomic(&case.meta(), &meta)
 }
 
 /// Writes an object-alone case into `dir` (created if needed).
@@ -132,12 +136,13 @@ pub fn write_room_case(
             .map(|&z| (z as f64 * unit_mm / 1000.0) as f32)
             .collect(),
     };
-    ic_render::io::write_depth_png(dir.join("depth.png"), &metres, depth_scale)?;
+    let case = CaseFolder::new(dir);
+    ic_render::io::write_depth_png(case.depth(), &metres, depth_scale)?;
     // The visible object mask, for methods run with the ground-truth mask (an upper bound);
     // a method under test must not read it otherwise.
-    ic_render::io::write_mask_png(dir.join("mask.png"), &sample.mask_visib)?;
+    ic_render::io::write_mask_png(case.mask(), &sample.mask_visib)?;
     write_json_atomic(
-        &dir.join("camera.json"),
+        &case.camera(),
         &json!({"cam_K": k.k_row_major().concat(), "depth_scale": depth_scale, "width": k.width, "height": k.height, "unit_mm": unit_mm}),
     )
 }
@@ -182,12 +187,13 @@ pub fn write_view_case(
             .map(|&z| (z as f64 * unit_mm / 1000.0) as f32)
             .collect(),
     };
-    ic_render::io::write_depth_png(dir.join("depth.png"), &metres, depth_scale)?;
-    ic_render::io::write_mask_png(dir.join("mask.png"), mask)?;
-    ic_geometry::io::write_mesh_ply(dir.join("model.ply"), mesh, PlyEncoding::BinaryLittleEndian)?;
+    let case = CaseFolder::new(dir);
+    ic_render::io::write_depth_png(case.depth(), &metres, depth_scale)?;
+    ic_render::io::write_mask_png(case.mask(), mask)?;
+    ic_geometry::io::write_mesh_ply(case.model(), mesh, PlyEncoding::BinaryLittleEndian)?;
     let k = sample.intrinsics;
     write_json_atomic(
-        &dir.join("camera.json"),
+        &case.camera(),
         &json!({"cam_K": k.k_row_major().concat(), "depth_scale": depth_scale, "width": k.width, "height": k.height, "unit_mm": unit_mm}),
     )
 }

@@ -97,64 +97,211 @@ fn vector3(v: &Value) -> Option<[f64; 3]> {
     Some(out)
 }
 
-/// Reads one `gt.json` (`{"R": 3×3 row-major, "t": [3]}`); fails when R is not a rotation.
+/// One registration case folder, `case_NNNNN/`: the format's single owner (file names, how
+/// the truth is read). Written by `ic_data::export` (`cargo xtask export-cases`, the bench),
+/// read by this module's scorer, `incontext eval --cases` and xtask.
+///
+/// | file | what | frame, units |
+/// |---|---|---|
+/// | `source.ply` | model points X, binary little-endian `float x y z` | model, normalised |
+/// | `target.ply` | observed points (object alone) or the voxelised scene (room) | camera, normalised |
+/// | `gt.json` | the true pose ([`Pose`]'s serde form, `{"R": rows, "t": [x, y, z]}`), `target ≈ R·source + t` | model → camera, normalised |
+/// | `meta.json` | object id, sample index, seed, counts, inlier rate | – |
+/// | `depth.png` | room and view cases: 16-bit depth, `stored × depth_scale = mm` | camera, mm |
+/// | `camera.json` | room and view cases: `cam_K` (row-major), `depth_scale`, `width`, `height`, `unit_mm` (mm per normalised unit) | pixels |
+/// | `mask.png` | room and view cases: the visible object (8-bit, 255), for upper-bound runs only | pixels |
+/// | `model.ply` | view cases: the normalised mesh the pose refers to | model, normalised |
+///
+/// The bench's room cases name their mask `mask_visib.png` ([`CaseFolder::MASK_VISIB`]).
+///
+/// ```
+/// use ic_eval::cases::CaseFolder;
+///
+/// let case = CaseFolder::new("cases").child(7);
+/// assert_eq!(case.name(), "case_00007");
+/// assert_eq!(case.gt(), std::path::Path::new("cases/case_00007/gt.json"));
+/// ```
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CaseFolder {
+    dir: PathBuf,
+}
+
+impl CaseFolder {
+    /// The normalised mesh (view cases).
+    pub const MODEL: &'static str = "model.ply";
+    /// The model points.
+    pub const SOURCE: &'static str = "source.ply";
+    /// The observed points.
+    pub const TARGET: &'static str = "target.ply";
+    /// The depth map (room and view cases).
+    pub const DEPTH: &'static str = "depth.png";
+    /// The visible object's mask (room and view cases).
+    pub const MASK: &'static str = "mask.png";
+    /// The mask's name in the bench's room cases.
+    pub const MASK_VISIB: &'static str = "mask_visib.png";
+    /// The camera (room and view cases).
+    pub const CAMERA: &'static str = "camera.json";
+    /// The true pose.
+    pub const GT: &'static str = "gt.json";
+    /// What the case is (object id, index, seed, counts).
+    pub const META: &'static str = "meta.json";
+
+    /// The case folder `dir` (nothing is read).
+    pub fn new(dir: impl Into<PathBuf>) -> Self {
+        CaseFolder { dir: dir.into() }
+    }
+
+    /// The name of case `index` in a set: `case_NNNNN` (5 digits, zero-padded).
+    pub fn name_of(index: u64) -> String {
+        format!("case_{index:05}")
+    }
+
+    /// Case `index` of the set whose folder is `self` (`self/case_NNNNN`).
+    pub fn child(&self, index: u64) -> CaseFolder {
+        CaseFolder::new(self.dir.join(CaseFolder::name_of(index)))
+    }
+
+    /// The folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The folder's name (the `case` of the result lines).
+    pub fn name(&self) -> String {
+        self.dir
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    }
+
+    /// `model.ply`.
+    pub fn model(&self) -> PathBuf {
+        self.dir.join(Self::MODEL)
+    }
+    /// `source.ply`.
+    pub fn source(&self) -> PathBuf {
+        self.dir.join(Self::SOURCE)
+    }
+    /// `target.ply`.
+    pub fn target(&self) -> PathBuf {
+        self.dir.join(Self::TARGET)
+    }
+    /// `depth.png`.
+    pub fn depth(&self) -> PathBuf {
+        self.dir.join(Self::DEPTH)
+    }
+    /// `mask.png`.
+    pub fn mask(&self) -> PathBuf {
+        self.dir.join(Self::MASK)
+    }
+    /// `camera.json`.
+    pub fn camera(&self) -> PathBuf {
+        self.dir.join(Self::CAMERA)
+    }
+    /// `gt.json`.
+    pub fn gt(&self) -> PathBuf {
+        self.dir.join(Self::GT)
+    }
+    /// `meta.json`.
+    pub fn meta(&self) -> PathBuf {
+        self.dir.join(Self::META)
+    }
+
+    /// Whether the folder holds a case (a `gt.json`).
+    pub fn is_case(&self) -> bool {
+        self.gt().is_file()
+    }
+
+    /// Whether the case holds a depth map and its camera (room and view cases; an
+    /// object-alone case holds only the PLY files).
+    pub fn has_depth(&self) -> bool {
+        self.depth().is_file() && self.camera().is_file()
+    }
+
+    /// The mask file, when the case has one (`mask.png`, else `mask_visib.png`).
+    pub fn mask_file(&self) -> Option<PathBuf> {
+        [Self::MASK, Self::MASK_VISIB]
+            .iter()
+            .map(|n| self.dir.join(n))
+            .find(|p| p.is_file())
+    }
+
+    /// The true pose, model → camera in normalised units ([`read_gt`]).
+    pub fn read_gt(&self) -> Result<Pose, EvalError> {
+        read_gt(&self.gt())
+    }
+
+    /// `object_id` of `meta.json` (a string, or a number as text); `None` without the file or
+    /// the key.
+    pub fn read_object_id(&self) -> Result<Option<String>, EvalError> {
+        let meta = self.meta();
+        if !meta.is_file() {
+            return Ok(None);
+        }
+        let v: Value = serde_json::from_str(&read_text(&meta)?)
+            .map_err(|e| format_error(&meta, e.to_string()))?;
+        Ok(match &v["object_id"] {
+            Value::String(s) => Some(s.clone()),
+            Value::Number(n) => Some(n.to_string()),
+            _ => None,
+        })
+    }
+
+    /// The case folders under `dir` (its subfolders, sorted by name); `dir` itself when it is
+    /// a case.
+    pub fn list(dir: &Path) -> Result<Vec<CaseFolder>, EvalError> {
+        let single = CaseFolder::new(dir);
+        if single.is_case() {
+            return Ok(vec![single]);
+        }
+        let entries = std::fs::read_dir(dir).map_err(|source| EvalError::Io {
+            path: dir.to_path_buf(),
+            source,
+        })?;
+        let mut dirs: Vec<PathBuf> = Vec::new();
+        for e in entries {
+            let e = e.map_err(|source| EvalError::Io {
+                path: dir.to_path_buf(),
+                source,
+            })?;
+            if e.path().is_dir() {
+                dirs.push(e.path());
+            }
+        }
+        dirs.sort();
+        Ok(dirs.into_iter().map(CaseFolder::new).collect())
+    }
+}
+
+/// Reads one `gt.json`, a [`Pose`] in its serde form (`{"R": 3×3 row-major, "t": [3]}`);
+/// fails, naming the file, when it is not one or R is not a rotation.
 pub fn read_gt(path: &Path) -> Result<Pose, EvalError> {
     let text = read_text(path)?;
-    let v: Value = serde_json::from_str(&text).map_err(|e| format_error(path, e.to_string()))?;
-    let r = matrix3(&v["R"]).ok_or_else(|| format_error(path, "\"R\" must be a 3×3 array"))?;
-    let t = vector3(&v["t"]).ok_or_else(|| format_error(path, "\"t\" must hold 3 numbers"))?;
-    Pose::from_row_major(r, t).map_err(|e| format_error(path, e.to_string()))
+    serde_json::from_str::<Pose>(&text).map_err(|e| {
+        format_error(
+            path,
+            format!("not a pose {{\"R\": 3×3 row-major, \"t\": [3 numbers]}}: {e}"),
+        )
+    })
 }
 
 /// The ground truth of every case folder under `dir` (each subfolder, sorted by name, must
 /// hold `gt.json`; `meta.json` is optional); `dir` may also be a single case folder.
 pub fn read_case_truths(dir: &Path) -> Result<Vec<CaseTruth>, EvalError> {
-    let read_one = |case_dir: &Path| -> Result<CaseTruth, EvalError> {
-        let pose = read_gt(&case_dir.join("gt.json"))?;
-        let meta = case_dir.join("meta.json");
-        let object_id = if meta.is_file() {
-            let v: Value = serde_json::from_str(&read_text(&meta)?)
-                .map_err(|e| format_error(&meta, e.to_string()))?;
-            match &v["object_id"] {
-                Value::String(s) => Some(s.clone()),
-                Value::Number(n) => Some(n.to_string()),
-                _ => None,
-            }
-        } else {
-            None
-        };
-        let case = case_dir
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        Ok(CaseTruth {
-            case,
-            pose,
-            object_id,
-        })
-    };
-    if dir.join("gt.json").is_file() {
-        return Ok(vec![read_one(dir)?]);
-    }
-    let entries = std::fs::read_dir(dir).map_err(|source| EvalError::Io {
-        path: dir.to_path_buf(),
-        source,
-    })?;
-    let mut dirs: Vec<PathBuf> = Vec::new();
-    for e in entries {
-        let e = e.map_err(|source| EvalError::Io {
-            path: dir.to_path_buf(),
-            source,
-        })?;
-        if e.path().is_dir() {
-            dirs.push(e.path());
-        }
-    }
-    dirs.sort();
-    if dirs.is_empty() {
+    let cases = CaseFolder::list(dir)?;
+    if cases.is_empty() {
         return Err(format_error(dir, "no case folders"));
     }
-    dirs.iter().map(|d| read_one(d)).collect()
+    cases
+        .iter()
+        .map(|c| {
+            Ok(CaseTruth {
+                case: c.name(),
+                pose: c.read_gt()?,
+                object_id: c.read_object_id()?,
+            })
+        })
+        .collect()
 }
 
 /// One result line: the pose a method found for a case (or why it found none).

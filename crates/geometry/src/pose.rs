@@ -12,6 +12,19 @@ use serde::{Deserialize, Serialize};
 use crate::GeometryError;
 
 /// A rigid transform `x ↦ R·x + t` (rotation `R` proper orthogonal, translation `t`).
+///
+/// Its serde form is the project's pose format, `{"R": [[..],[..],[..]], "t": [x, y, z]}` with
+/// `R` row-major (other keys are ignored on read); reading checks that `R` is a rotation
+/// ([`Pose::from_row_major`]) and fails with `invalid rotation: …` otherwise.
+///
+/// ```
+/// use ic_geometry::Pose;
+///
+/// let p: Pose = serde_json::from_str(r#"{"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0, 0, 2.8]}"#).unwrap();
+/// assert_eq!(p.translation.z, 2.8);
+/// let e = serde_json::from_str::<Pose>(r#"{"R": [[1, 0, 0], [0, 1, 0], [0, 0, -1]], "t": [0, 0, 0]}"#);
+/// assert!(e.unwrap_err().to_string().contains("invalid rotation: det R < 0"));
+/// ```
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(try_from = "PoseFile", into = "PoseFile")]
 pub struct Pose {
@@ -307,6 +320,26 @@ mod tests {
         assert!((r0[0]).abs() < 1e-12 && (r0[1] + 1.0).abs() < 1e-12 && r0[2].abs() < 1e-12);
         let back: Pose = serde_json::from_value(json).unwrap();
         assert!(back.rotation.abs_diff_eq(p.rotation, 1e-12));
+    }
+
+    #[test]
+    fn json_reading_checks_the_rotation_and_names_the_fault() {
+        let scaled = r#"{"R": [[2, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0, 0, 0]}"#;
+        let e = serde_json::from_str::<Pose>(scaled)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("invalid rotation: R is not orthonormal"), "{e}");
+        let short = r#"{"R": [[1, 0, 0], [0, 1, 0]], "t": [0, 0, 0]}"#;
+        assert!(serde_json::from_str::<Pose>(short).is_err());
+        let no_t = r#"{"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}"#;
+        let e = serde_json::from_str::<Pose>(no_t).unwrap_err().to_string();
+        assert!(e.contains("missing field `t`"), "{e}");
+        // Written row-major with "R" before "t", as every file of the project holds it.
+        let p = Pose::from_translation(DVec3::new(1.0, 2.0, 3.0));
+        assert_eq!(
+            serde_json::to_string(&p).unwrap(),
+            r#"{"R":[[1.0,0.0,0.0],[0.0,1.0,0.0],[0.0,0.0,1.0]],"t":[1.0,2.0,3.0]}"#
+        );
     }
 
     #[test]

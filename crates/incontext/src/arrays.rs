@@ -12,14 +12,14 @@
 //!
 //! ```no_run
 //! use incontext::arrays::{self, DepthValues};
-//! use incontext::pipeline::{Object, Pipeline, PipelineOptions};
+//! use incontext::pipeline::{Object, Pipeline};
 //! # fn main() -> Result<(), incontext::CliError> {
 //! let k = [525.0, 0.0, 319.5, 0.0, 525.0, 239.5, 0.0, 0.0, 1.0];
 //! let camera = arrays::camera(k, 640, 480, 1.0, "camera")?;
 //! let stored = vec![800u16; 640 * 480]; // 16-bit depth in mm (depth_scale 1)
 //! let depth_mm = arrays::depth_mm(DepthValues::U16(&stored), 640, 480, &camera, "depth")?;
 //! let mesh = incontext::inputs::read_mesh("model.ply".as_ref())?; // in mm
-//! let pipeline = Pipeline::load(None, None, None, true, PipelineOptions::default())?;
+//! let pipeline = Pipeline::builder().build()?;
 //! let object = Object::from_mesh(mesh, 0)?;
 //! let r = arrays::register_depth_mm(&pipeline, &object, &depth_mm, &camera.intrinsics, None, 1.0, 0)?;
 //! println!("{:?}", r.pose);

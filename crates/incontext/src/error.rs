@@ -79,33 +79,29 @@ impl std::error::Error for CliError {}
 /// Results of this crate.
 pub type Result<T, E = CliError> = std::result::Result<T, E>;
 
-/// Classifies the pose crate's errors: a checkpoint that cannot be read or does not fit its
-/// network is bad input; too few points means the object was not found; the rest is internal.
-impl From<ic_pose::PoseError> for CliError {
-    fn from(e: ic_pose::PoseError) -> Self {
-        use ic_pose::PoseError as P;
-        match &e {
-            P::Checkpoint { .. } | P::Io { .. } => CliError::input(e.to_string()),
-            P::TooFewPoints { .. } => {
-                CliError::not_found(format!("too few points to estimate a pose: {e}"))
-            }
-            P::NonFinite { .. } => CliError::input(e.to_string()),
-            _ => CliError::internal(e.to_string()),
+/// The pipeline's errors keep their message; their variant gives the kind.
+impl From<crate::pipeline::PipelineError> for CliError {
+    fn from(e: crate::pipeline::PipelineError) -> Self {
+        use crate::pipeline::PipelineError as P;
+        match e {
+            P::Input(m) => CliError::input(m),
+            P::NotFound(m) => CliError::not_found(m),
+            P::Internal(m) => CliError::internal(m),
         }
     }
 }
 
-/// Classifies the segmentation crate's errors.
+/// Classified as the pipeline classifies them ([`crate::pipeline::PipelineError`]).
+impl From<ic_pose::PoseError> for CliError {
+    fn from(e: ic_pose::PoseError) -> Self {
+        crate::pipeline::PipelineError::from(e).into()
+    }
+}
+
+/// Classified as the pipeline classifies them ([`crate::pipeline::PipelineError`]).
 impl From<ic_seg::SegError> for CliError {
     fn from(e: ic_seg::SegError) -> Self {
-        use ic_seg::SegError as S;
-        match &e {
-            S::ObjectNotFound { .. } => CliError::not_found(e.to_string()),
-            S::Input(_) | S::Checkpoint { .. } | S::Io { .. } | S::Geometry(_) => {
-                CliError::input(e.to_string())
-            }
-            _ => CliError::internal(e.to_string()),
-        }
+        crate::pipeline::PipelineError::from(e).into()
     }
 }
 

@@ -20,6 +20,7 @@ use std::time::Instant;
 
 use ic_data::bop::{BopDataset, BopLoadOptions};
 use ic_data::{CorpusOptions, ROOM_UNIT_MM};
+use ic_eval::cases::CaseFolder;
 use ic_eval::{Curve, MethodResult, PoseErrors, Summary};
 use ic_geometry::glam::Vec3;
 use ic_geometry::{Image, Mask};
@@ -197,7 +198,17 @@ impl Pipelines {
             if by_head.contains_key(m.head.as_str()) {
                 continue;
             }
-            let p = Pipeline::load(pose_model, Some(m.head), seg_model, with_seg, options)?;
+            let mut builder = Pipeline::builder()
+                .head(m.head)
+                .segmentation(with_seg)
+                .options(options);
+            if let Some(path) = pose_model {
+                builder = builder.pose_model(path);
+            }
+            if let Some(path) = seg_model {
+                builder = builder.seg_model(path);
+            }
+            let p = builder.build()?;
             by_head.insert(m.head.as_str(), (p, options.rotations));
         }
         Ok(Pipelines { by_head })
@@ -284,30 +295,24 @@ pub enum CaseInput {
 
 /// A room case holds `depth.png` and `camera.json` (an object-alone case only the PLY files).
 pub fn is_room_case(dir: &Path) -> bool {
-    dir.join("depth.png").is_file() && dir.join("camera.json").is_file()
-}
-
-fn case_mask_path(dir: &Path) -> Option<PathBuf> {
-    ["mask.png", "mask_visib.png"]
-        .iter()
-        .map(|n| dir.join(n))
-        .find(|p| p.is_file())
+    CaseFolder::new(dir).has_depth()
 }
 
 /// Reads a case folder (never `gt.json`): the model points (`source.ply`) and the observation.
 pub fn read_case(dir: &Path, gt_mask: bool) -> Result<(CaseModel, CaseInput)> {
-    let mesh_path = dir.join("model.ply");
+    let case = CaseFolder::new(dir);
+    let mesh_path = case.model();
     let source = if mesh_path.is_file() {
         CaseModel::Mesh(inputs::read_mesh(&mesh_path)?)
     } else {
-        CaseModel::Points(ic_geometry::io::read_ply_cloud(dir.join("source.ply"))?.points)
+        CaseModel::Points(ic_geometry::io::read_ply_cloud(case.source())?.points)
     };
-    if !is_room_case(dir) {
-        let target = ic_geometry::io::read_ply_cloud(dir.join("target.ply"))?.points;
+    if !case.has_depth() {
+        let target = ic_geometry::io::read_ply_cloud(case.target())?.points;
         return Ok((source, CaseInput::Points(target)));
     }
-    let cam_path = dir.join("camera.json");
-    let depth_path = dir.join("depth.png");
+    let cam_path = case.camera();
+    let depth_path = case.depth();
     let camera = inputs::read_camera(&cam_path, || inputs::depth_size(&depth_path))?;
     let unit_mm = camera.unit_mm.unwrap_or_else(|| {
         tracing::warn!(file = %cam_path.display(), "no unit_mm: assuming {ROOM_UNIT_MM} mm per unit");
@@ -321,7 +326,7 @@ pub fn read_case(dir: &Path, gt_mask: bool) -> Result<(CaseModel, CaseInput)> {
         data: mm.data.iter().map(|&z| z * to_units).collect(),
     };
     let mask = if gt_mask {
-        let p = case_mask_path(dir).ok_or_else(|| {
+        let p = case.mask_file().ok_or_else(|| {
             CliError::input(format!(
                 "{}: --gt-mask, but the case has no mask.png",
                 dir.display()
@@ -352,14 +357,14 @@ pub fn register_case(
         CaseModel::Points(source) => Object::from_points(source.clone())?,
         CaseModel::Mesh(mesh) => Object::from_mesh(mesh.clone(), seed)?,
     };
-    match input {
-        CaseInput::Points(target) => pipeline.register_points(&object, target, seed),
+    Ok(match input {
+        CaseInput::Points(target) => pipeline.register_points(&object, target, seed)?,
         CaseInput::Depth {
             depth,
             intrinsics,
             mask,
-        } => pipeline.register_depth_normalised(&object, depth, intrinsics, mask.as_ref(), seed),
-    }
+        } => pipeline.register_depth_normalised(&object, depth, intrinsics, mask.as_ref(), seed)?,
+    })
 }
 
 fn case_dirs(root: &Path) -> Result<Vec<PathBuf>> {
@@ -436,7 +441,7 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
     if args.gt_mask
         && let Some(d) = dirs
             .iter()
-            .find(|d| is_room_case(d) && case_mask_path(d).is_none())
+            .find(|d| is_room_case(d) && CaseFolder::new(d.as_path()).mask_file().is_none())
     {
         return Err(CliError::input(format!(
             "{}: --gt-mask, but the case has no mask.png (export-cases does not write masks)",
@@ -509,7 +514,12 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
                                     "verification": r.verification,
                                     "rival_score": r.rival_score,
                                     "evidence": r.evidence,
-                                    "verified": r.verified.iter().map(|h| json!({"score": h.score, "R": h.pose_normalised.rotation_row_major(), "t": h.pose_normalised.translation.to_array()})).collect::<Vec<_>>(),
+                                    "verified": r.verified.iter().map(|h| {
+                                        // {"R", "score", "t"}: the pose's serde form and its score.
+                                        let mut v = json!(h.pose_normalised);
+                                        v["score"] = json!(h.score);
+                                        v
+                                    }).collect::<Vec<_>>(),
                                     "stage_seconds": r.seconds,
                                 }));
                             }
@@ -739,7 +749,7 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                         tracing::debug!(image = i, method = %m.name, "failed: {err}");
                         errors.entry(m.name.clone()).or_default().push(None);
                         rec["ok"] = json!(false);
-                        rec["error"] = json!(err.message);
+                        rec["error"] = json!(err.message());
                     }
                 }
                 per_image.push(rec.to_string());

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use ic_pose::{Head, PoseEstimator};
 use ic_seg::Segmenter;
 
-use crate::error::{CliError, Result};
+use crate::pipeline::{PipelineError, Result};
 
 /// One shipped model: its file name under `models/` and, when it existed at build time, its
 /// bytes.
@@ -97,11 +97,11 @@ impl CheckpointFile {
 fn check_readable(path: &Path, what: &str) -> Result<()> {
     match std::fs::metadata(path) {
         Ok(m) if m.is_file() => Ok(()),
-        Ok(_) => Err(CliError::input(format!(
+        Ok(_) => Err(PipelineError::input(format!(
             "{}: the {what} is not a file",
             path.display()
         ))),
-        Err(e) => Err(CliError::input(format!(
+        Err(e) => Err(PipelineError::input(format!(
             "{}: cannot read the {what}: {e}",
             path.display()
         ))),
@@ -116,12 +116,12 @@ fn shipped_file(shipped: &Shipped, what: &str, flag: &str) -> Result<CheckpointF
             .suffix(".safetensors")
             .tempfile()
             .map_err(|e| {
-                CliError::internal(format!("creating a temporary file for the {what}: {e}"))
+                PipelineError::internal(format!("creating a temporary file for the {what}: {e}"))
             })?;
         tmp.write_all(bytes)
             .and_then(|_| tmp.flush())
             .map_err(|e| {
-                CliError::internal(format!(
+                PipelineError::internal(format!(
                     "writing the embedded {what} to a temporary file: {e}"
                 ))
             })?;
@@ -131,7 +131,7 @@ fn shipped_file(shipped: &Shipped, what: &str, flag: &str) -> Result<CheckpointF
     if path.is_file() {
         return Ok(CheckpointFile::Path(path));
     }
-    Err(CliError::input(format!(
+    Err(PipelineError::input(format!(
         "the {what} models/{} is not built into this binary and {} does not exist; \
          pass {flag} FILE (a checkpoint written by cargo xtask)",
         shipped.file,
@@ -167,12 +167,12 @@ pub fn load_pose(path: Option<&Path>, head: Option<Head>) -> Result<LoadedPose> 
         }
     };
     let estimator = PoseEstimator::load(file.path())
-        .map_err(|e| CliError::from(e).context(format!("loading the pose model {source}")))?;
+        .map_err(|e| PipelineError::from(e).context(format!("loading the pose model {source}")))?;
     let got = estimator.config().net.head;
     if let Some(want) = head
         && got != want
     {
-        return Err(CliError::input(format!(
+        return Err(PipelineError::input(format!(
             "{source}: the pose model has a {} head, but --head {} was asked for",
             got.as_str(),
             want.as_str()
@@ -208,7 +208,7 @@ pub fn load_seg(path: Option<&Path>) -> Result<LoadedSeg> {
     };
     // Segmenter::load reads the weights into memory; the file may go afterwards.
     let segmenter = Segmenter::load(file.path()).map_err(|e| {
-        CliError::from(e).context(format!("loading the segmentation model {source}"))
+        PipelineError::from(e).context(format!("loading the segmentation model {source}"))
     })?;
     Ok(LoadedSeg { segmenter, source })
 }

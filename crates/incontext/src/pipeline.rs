@@ -15,7 +15,14 @@
 //! The networks work in normalised object units: the mesh is normalised to [-1, 1] on its
 //! longest side (`Normalisation { centre, scale }`) and the depth map, which must be in the
 //! mesh's own units, is divided by `scale`, so the camera frame is scaled but not moved.
+//!
+//! A pipeline is made by [`Pipeline::builder`] (the networks, the settings of `incontext
+//! register` as defaults, optionally its own threads) and fails with [`PipelineError`]: bad
+//! input, object not found, or internal — the distinction the command line turns into its exit
+//! codes 2, 3 and 1 (through `CliError`) and the Python module into its exceptions. Poses map
+//! model to camera coordinates (`x_cam = R·x + t`, R row-major in files).
 
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -31,8 +38,98 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use crate::error::{CliError, Result};
 use crate::models::{LoadedPose, LoadedSeg};
+
+/// Why a pipeline could not be built or a registration failed, by what the caller can do
+/// about it. The command line maps the variants to its exit codes (2, 3, 1) and the Python
+/// module to `ValueError`, `NotFoundError` and `RuntimeError`; the message names the file or
+/// the value at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    /// Bad input: a checkpoint that cannot be read or does not fit, a mesh that cannot be
+    /// normalised, sizes that do not match, an empty mask, a setting out of range.
+    #[error("{0}")]
+    Input(String),
+    /// The object is not in the depth map (segmentation finds nothing, too few object points).
+    #[error("{0}")]
+    NotFound(String),
+    /// Anything else: a bug or an environment problem.
+    #[error("{0}")]
+    Internal(String),
+}
+
+impl PipelineError {
+    /// [`PipelineError::Input`].
+    pub fn input(message: impl Into<String>) -> Self {
+        PipelineError::Input(message.into())
+    }
+
+    /// [`PipelineError::NotFound`].
+    pub fn not_found(message: impl Into<String>) -> Self {
+        PipelineError::NotFound(message.into())
+    }
+
+    /// [`PipelineError::Internal`].
+    pub fn internal(message: impl Into<String>) -> Self {
+        PipelineError::Internal(message.into())
+    }
+
+    /// The message, for people.
+    pub fn message(&self) -> &str {
+        match self {
+            PipelineError::Input(m) | PipelineError::NotFound(m) | PipelineError::Internal(m) => m,
+        }
+    }
+
+    /// The same error with `context: ` in front of its message.
+    pub fn context(self, context: impl std::fmt::Display) -> Self {
+        match self {
+            PipelineError::Input(m) => PipelineError::Input(format!("{context}: {m}")),
+            PipelineError::NotFound(m) => PipelineError::NotFound(format!("{context}: {m}")),
+            PipelineError::Internal(m) => PipelineError::Internal(format!("{context}: {m}")),
+        }
+    }
+}
+
+/// Classifies the pose crate's errors: a checkpoint that cannot be read or does not fit its
+/// network is bad input; too few points means the object was not found; the rest is internal.
+impl From<ic_pose::PoseError> for PipelineError {
+    fn from(e: ic_pose::PoseError) -> Self {
+        use ic_pose::PoseError as P;
+        match &e {
+            P::Checkpoint { .. } | P::Io { .. } => PipelineError::input(e.to_string()),
+            P::TooFewPoints { .. } => {
+                PipelineError::not_found(format!("too few points to estimate a pose: {e}"))
+            }
+            P::NonFinite { .. } => PipelineError::input(e.to_string()),
+            _ => PipelineError::internal(e.to_string()),
+        }
+    }
+}
+
+/// Classifies the segmentation crate's errors.
+impl From<ic_seg::SegError> for PipelineError {
+    fn from(e: ic_seg::SegError) -> Self {
+        use ic_seg::SegError as S;
+        match &e {
+            S::ObjectNotFound { .. } => PipelineError::not_found(e.to_string()),
+            S::Input(_) | S::Checkpoint { .. } | S::Io { .. } | S::Geometry(_) => {
+                PipelineError::input(e.to_string())
+            }
+            _ => PipelineError::internal(e.to_string()),
+        }
+    }
+}
+
+/// Geometry errors inside the pipeline come from computations on checked input.
+impl From<ic_geometry::GeometryError> for PipelineError {
+    fn from(e: ic_geometry::GeometryError) -> Self {
+        PipelineError::internal(e.to_string())
+    }
+}
+
+/// Results of the pipeline.
+pub type Result<T, E = PipelineError> = std::result::Result<T, E>;
 
 /// The paper's voxel size, 0.05·√2/2 normalised units.
 pub const VOXEL_SIZE: f32 = ic_data::PAPER_VOXEL_SIZE;
@@ -144,16 +241,16 @@ impl Object {
         let clock = Instant::now();
         let normalisation = mesh
             .normalise()
-            .map_err(|e| CliError::input(format!("the mesh cannot be normalised: {e}")))?;
+            .map_err(|e| PipelineError::input(format!("the mesh cannot be normalised: {e}")))?;
         let cloud = sample_visible_surface(
             &mesh,
             DENSE_MODEL_POINTS,
             seed,
             VisibleSurfaceOptions::default(),
         )
-        .map_err(|e| CliError::input(format!("sampling the mesh surface: {e}")))?;
+        .map_err(|e| PipelineError::input(format!("sampling the mesh surface: {e}")))?;
         if cloud.points.len() < 16 {
-            return Err(CliError::input(format!(
+            return Err(PipelineError::input(format!(
                 "the mesh has almost no visible surface ({} points could be sampled)",
                 cloud.points.len()
             )));
@@ -173,13 +270,13 @@ impl Object {
     pub fn from_points(points: Vec<Vec3>) -> Result<Object> {
         let clock = Instant::now();
         if points.len() < 16 {
-            return Err(CliError::input(format!(
+            return Err(PipelineError::input(format!(
                 "the model has {} points; at least 16 are needed",
                 points.len()
             )));
         }
         if points.iter().any(|p| !p.is_finite()) {
-            return Err(CliError::input("the model points are not all finite"));
+            return Err(PipelineError::input("the model points are not all finite"));
         }
         let normals = pca_normals(&points)?;
         let mut object = Object::build(
@@ -456,38 +553,215 @@ pub struct VerifiedHypothesis {
     pub pose_normalised: Pose,
 }
 
-/// The networks and settings of the pipeline.
+/// The rotation hypotheses of `incontext register` (and of [`PipelineBuilder`]) by default:
+/// the 24 rotations of the cube group.
+pub const DEFAULT_ROTATIONS: usize = 24;
+
+/// The networks and settings of the pipeline. Made by [`Pipeline::builder`].
+///
+/// All its inputs and outputs follow the workspace's conventions: poses map model to camera
+/// coordinates (`x_cam = R·x_model + t`, OpenCV camera frame: x right, y down, z forward),
+/// in the mesh's own units (those of the depth map) or, where a name says so, in normalised
+/// object units (the mesh scaled to [-1, 1] on its longest side).
 pub struct Pipeline {
     pose: LoadedPose,
     seg: Option<LoadedSeg>,
     pub options: PipelineOptions,
+    /// The threads registrations run on (`None`: rayon's global pool).
+    pool: Option<rayon::ThreadPool>,
 }
 
-impl Pipeline {
-    /// A pipeline over loaded networks. Without a segmentation network, depth inputs need a
-    /// mask.
-    pub fn new(mut pose: LoadedPose, seg: Option<LoadedSeg>, options: PipelineOptions) -> Self {
-        // The pipeline refines itself (onto the dense model, with every object voxel).
-        pose.estimator.recovery.refine = Refine::None;
-        Pipeline { pose, seg, options }
+/// How to load a [`Pipeline`]: which networks, which settings. The defaults are those of
+/// `incontext register`: the shipped softmax pose network and segmentation network, ICP,
+/// [`DEFAULT_ROTATIONS`] rotation hypotheses verified by render-and-compare (the best 8), one
+/// hypothesis per copy, the global thread pool.
+///
+/// ```no_run
+/// use incontext::{Head, Pipeline, Refine};
+/// # fn main() -> Result<(), incontext::PipelineError> {
+/// let pipeline = Pipeline::builder()
+///     .pose_model("models/pose-cpu-softmax.safetensors")
+///     .head(Head::Softmax)
+///     .refine(Refine::Icp)
+///     .rotations(24)
+///     .threads(2)
+///     .build()?;
+/// # Ok(()) }
+/// ```
+#[derive(Clone, Debug)]
+pub struct PipelineBuilder {
+    pose_model: Option<PathBuf>,
+    head: Option<Head>,
+    seg_model: Option<PathBuf>,
+    segmentation: bool,
+    options: PipelineOptions,
+    threads: Option<usize>,
+}
+
+impl Default for PipelineBuilder {
+    fn default() -> Self {
+        PipelineBuilder {
+            pose_model: None,
+            head: None,
+            seg_model: None,
+            segmentation: true,
+            options: PipelineOptions {
+                rotations: DEFAULT_ROTATIONS,
+                ..PipelineOptions::default()
+            },
+            threads: None,
+        }
+    }
+}
+
+impl PipelineBuilder {
+    /// A pose checkpoint (written by `cargo xtask train-pose`) instead of the shipped network.
+    pub fn pose_model(mut self, path: impl Into<PathBuf>) -> Self {
+        self.pose_model = Some(path.into());
+        self
     }
 
-    /// Loads the networks: `pose_model` or the shipped one of `head`; the segmentation network
-    /// when `with_seg` (`seg_model` or the shipped one).
-    pub fn load(
-        pose_model: Option<&std::path::Path>,
-        head: Option<Head>,
-        seg_model: Option<&std::path::Path>,
-        with_seg: bool,
-        options: PipelineOptions,
-    ) -> Result<Pipeline> {
-        let pose = crate::models::load_pose(pose_model, head)?;
-        let seg = if with_seg {
-            Some(crate::models::load_seg(seg_model)?)
+    /// The correspondence head: picks the shipped network of that head, or, with
+    /// [`PipelineBuilder::pose_model`], requires the checkpoint to have it. Unset: the shipped
+    /// softmax network, or the checkpoint's own head.
+    pub fn head(mut self, head: Head) -> Self {
+        self.head = Some(head);
+        self
+    }
+
+    /// A segmentation checkpoint instead of the shipped network.
+    pub fn seg_model(mut self, path: impl Into<PathBuf>) -> Self {
+        self.seg_model = Some(path.into());
+        self
+    }
+
+    /// Whether to load the segmentation network (default true). Without it, depth inputs need
+    /// a mask; points inputs never need it.
+    pub fn segmentation(mut self, load: bool) -> Self {
+        self.segmentation = load;
+        self
+    }
+
+    /// All the settings at once (replaces those set before; the rotation default of the
+    /// builder, [`DEFAULT_ROTATIONS`], is `options.rotations` then).
+    pub fn options(mut self, options: PipelineOptions) -> Self {
+        self.options = options;
+        self
+    }
+
+    /// Refinement after the one-shot estimate ([`PipelineOptions::refine`]).
+    pub fn refine(mut self, refine: Refine) -> Self {
+        self.options.refine = refine;
+        self
+    }
+
+    /// Rotation hypotheses: 1, 12, 24 or 60 ([`PipelineOptions::rotations`]).
+    pub fn rotations(mut self, rotations: usize) -> Self {
+        self.options.rotations = rotations;
+        self
+    }
+
+    /// Pose hypotheses of the unverified pipeline ([`PipelineOptions::hypotheses`]).
+    pub fn hypotheses(mut self, hypotheses: usize) -> Self {
+        self.options.hypotheses = hypotheses;
+        self
+    }
+
+    /// Hypotheses refined and verified ([`PipelineOptions::verify_top`]).
+    pub fn verify_top(mut self, verify_top: usize) -> Self {
+        self.options.verify_top = verify_top;
+        self
+    }
+
+    /// Rotated copies kept after the DGCNN ([`PipelineOptions::sweep_keep`]; 0 = all).
+    pub fn sweep_keep(mut self, sweep_keep: usize) -> Self {
+        self.options.sweep_keep = sweep_keep;
+        self
+    }
+
+    /// Sampled poses per rotated copy ([`PipelineOptions::sampled_hypotheses`]).
+    pub fn sampled_hypotheses(mut self, sampled_hypotheses: usize) -> Self {
+        self.options.sampled_hypotheses = sampled_hypotheses;
+        self
+    }
+
+    /// Passes of the network over the verified hypotheses
+    /// ([`PipelineOptions::network_passes`]).
+    pub fn network_passes(mut self, network_passes: usize) -> Self {
+        self.options.network_passes = network_passes;
+        self
+    }
+
+    /// Registrations run on their own pool of `threads` threads (at least 1) instead of
+    /// rayon's global pool. Loading and [`Object::from_mesh`] are not affected.
+    pub fn threads(mut self, threads: usize) -> Self {
+        self.threads = Some(threads);
+        self
+    }
+
+    /// Loads the networks (the shipped ones are embedded in the binary when they existed at
+    /// build time) and checks the settings.
+    ///
+    /// Errors: [`PipelineError::Input`] for a checkpoint that cannot be read or lacks the asked
+    /// head, a shipped network that is neither embedded nor in the workspace, a rotation count
+    /// other than 1, 12, 24 or 60, zero threads; [`PipelineError::Internal`] when the threads
+    /// cannot be started.
+    pub fn build(self) -> Result<Pipeline> {
+        crate::verify::rotation_set(self.options.rotations)
+            .map_err(|e| PipelineError::input(format!("rotations: {e}")))?;
+        let pool = match self.threads {
+            None => None,
+            Some(0) => {
+                return Err(PipelineError::input(
+                    "threads: 0 is not a number of threads (at least 1)",
+                ));
+            }
+            Some(t) => Some(
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(t)
+                    .build()
+                    .map_err(|e| PipelineError::internal(format!("starting {t} threads: {e}")))?,
+            ),
+        };
+        let pose = crate::models::load_pose(self.pose_model.as_deref(), self.head)?;
+        let seg = if self.segmentation {
+            Some(crate::models::load_seg(self.seg_model.as_deref())?)
         } else {
             None
         };
-        Ok(Pipeline::new(pose, seg, options))
+        let mut pipeline = Pipeline::new(pose, seg, self.options);
+        pipeline.pool = pool;
+        Ok(pipeline)
+    }
+}
+
+impl Pipeline {
+    /// How to load a pipeline; `Pipeline::builder().build()` is what `incontext register`
+    /// loads with its default flags.
+    pub fn builder() -> PipelineBuilder {
+        PipelineBuilder::default()
+    }
+
+    /// A pipeline over networks already loaded ([`crate::models::load_pose`],
+    /// [`crate::models::load_seg`]), on rayon's global pool. Without a segmentation network,
+    /// depth inputs need a mask.
+    pub fn new(mut pose: LoadedPose, seg: Option<LoadedSeg>, options: PipelineOptions) -> Self {
+        // The pipeline refines itself (onto the dense model, with every object voxel).
+        pose.estimator.recovery.refine = Refine::None;
+        Pipeline {
+            pose,
+            seg,
+            options,
+            pool: None,
+        }
+    }
+
+    /// Runs `f` on the pipeline's threads (or the caller's pool).
+    fn in_pool<T: Send>(&self, f: impl FnOnce() -> T + Send) -> T {
+        match &self.pool {
+            Some(pool) => pool.install(f),
+            None => f(),
+        }
     }
 
     pub fn head(&self) -> Head {
@@ -546,14 +820,16 @@ impl Pipeline {
         mask: Option<&Mask>,
         seed: u64,
     ) -> Result<Registration> {
-        let clock = Instant::now();
-        let inv = (1.0 / object.normalisation.scale) as f32;
-        let depth_n = Image {
-            width: depth.width,
-            height: depth.height,
-            data: depth.data.iter().map(|&z| z * inv).collect(),
-        };
-        self.register_depth_inner(object, &depth_n, intrinsics, mask, seed, clock)
+        self.in_pool(|| {
+            let clock = Instant::now();
+            let inv = (1.0 / object.normalisation.scale) as f32;
+            let depth_n = Image {
+                width: depth.width,
+                height: depth.height,
+                data: depth.data.iter().map(|&z| z * inv).collect(),
+            };
+            self.register_depth_inner(object, &depth_n, intrinsics, mask, seed, clock)
+        })
     }
 
     /// [`Pipeline::register_depth`] for a depth map already in normalised units (the depth in
@@ -566,14 +842,16 @@ impl Pipeline {
         mask: Option<&Mask>,
         seed: u64,
     ) -> Result<Registration> {
-        self.register_depth_inner(
-            object,
-            depth_normalised,
-            intrinsics,
-            mask,
-            seed,
-            Instant::now(),
-        )
+        self.in_pool(|| {
+            self.register_depth_inner(
+                object,
+                depth_normalised,
+                intrinsics,
+                mask,
+                seed,
+                Instant::now(),
+            )
+        })
     }
 
     fn register_depth_inner(
@@ -587,18 +865,18 @@ impl Pipeline {
     ) -> Result<Registration> {
         intrinsics
             .validate()
-            .map_err(|e| CliError::input(e.to_string()))?;
+            .map_err(|e| PipelineError::input(e.to_string()))?;
         depth_n
             .check_size(intrinsics.width, intrinsics.height)
-            .map_err(|e| CliError::input(format!("depth map: {e}")))?;
+            .map_err(|e| PipelineError::input(format!("depth map: {e}")))?;
         let mut seconds = StageSeconds::default();
         let (mask, summary) = match mask {
             Some(m) => {
                 m.check_size(intrinsics.width, intrinsics.height)
-                    .map_err(|e| CliError::input(format!("mask: {e}")))?;
+                    .map_err(|e| PipelineError::input(format!("mask: {e}")))?;
                 let pixels = m.data.iter().filter(|&&b| b).count();
                 if pixels == 0 {
-                    return Err(CliError::input("the mask is empty (no pixel is set)"));
+                    return Err(PipelineError::input("the mask is empty (no pixel is set)"));
                 }
                 (
                     m.clone(),
@@ -611,7 +889,7 @@ impl Pipeline {
             }
             None => {
                 let seg = self.seg.as_ref().ok_or_else(|| {
-                    CliError::input("no segmentation network loaded and no mask given")
+                    PipelineError::input("no segmentation network loaded and no mask given")
                 })?;
                 let s = seg.segmenter.segment(depth_n, intrinsics)?;
                 seconds.segmentation_network = s.network_seconds;
@@ -632,13 +910,13 @@ impl Pipeline {
         let eroded = mask.eroded3x3_keeping_some(post.erosions);
         let points = ic_seg::post::masked_points(depth_n, intrinsics, &eroded, post.crop_radius)
             .map_err(|e| match (summary.source, e) {
-                ("mask", e) => CliError::input(format!("mask: {e}")),
-                (_, e) => CliError::not_found(format!("segmentation: {e}")),
+                ("mask", e) => PipelineError::input(format!("mask: {e}")),
+                (_, e) => PipelineError::not_found(format!("segmentation: {e}")),
             })?;
         let voxels = voxel_downsample_points(&points, self.options.voxel_size)?;
         seconds.observed_points = t.elapsed().as_secs_f64();
         if voxels.len() < self.options.min_object_points {
-            return Err(CliError::not_found(format!(
+            return Err(PipelineError::not_found(format!(
                 "object not found: only {} object points ({} voxels) after segmentation, at least {} are needed \
                  (is the mesh in the depth map's units? see --model-unit-mm)",
                 points.len(),
@@ -668,12 +946,23 @@ impl Pipeline {
         observed: &[Vec3],
         seed: u64,
     ) -> Result<Registration> {
+        self.in_pool(|| self.register_points_inner(object, observed, seed))
+    }
+
+    fn register_points_inner(
+        &self,
+        object: &Object,
+        observed: &[Vec3],
+        seed: u64,
+    ) -> Result<Registration> {
         let clock = Instant::now();
         if observed.iter().any(|p| !p.is_finite()) {
-            return Err(CliError::input("the observed points are not all finite"));
+            return Err(PipelineError::input(
+                "the observed points are not all finite",
+            ));
         }
         if observed.len() < self.options.min_object_points.min(16) {
-            return Err(CliError::not_found(format!(
+            return Err(PipelineError::not_found(format!(
                 "only {} observed points",
                 observed.len()
             )));
@@ -778,7 +1067,7 @@ impl Pipeline {
         clock: Instant,
     ) -> Result<Registration> {
         use crate::verify::{ModelShape, rotation_set};
-        let rotations = rotation_set(self.options.rotations).map_err(CliError::input)?;
+        let rotations = rotation_set(self.options.rotations).map_err(PipelineError::input)?;
         let (m, n) = match self.options.sweep_points {
             0 => self.point_counts(),
             m => (m, m * 3 / 4),

@@ -11,7 +11,7 @@ use crate::error::Result;
 use crate::inputs;
 use crate::outputs::{self, Named};
 use crate::overlay;
-use crate::pipeline::{Object, Pipeline, PipelineOptions, Registration, Verdict};
+use crate::pipeline::{Object, Pipeline, PipelineBuilder, PipelineOptions, Registration, Verdict};
 
 /// The error of a registration whose verdict is `not_found` (exit code 3).
 pub fn not_found_error(r: &Registration, options: &PipelineOptions) -> crate::CliError {
@@ -151,32 +151,39 @@ pub fn parse_refine(s: &str) -> std::result::Result<Refine, String> {
 }
 
 impl NetworkArgs {
+    /// The pipeline these flags describe (the segmentation network only when `with_seg`),
+    /// not loaded yet.
+    pub fn builder(&self, with_seg: bool) -> PipelineBuilder {
+        let mut b = Pipeline::builder()
+            .segmentation(with_seg)
+            .refine(self.refine)
+            .hypotheses(self.hypotheses as usize)
+            .rotations(self.rotations)
+            .verify_top(self.verify_top as usize)
+            .sweep_keep(self.sweep_keep)
+            .sampled_hypotheses(self.sampled_hypotheses)
+            .network_passes(self.network_passes as usize);
+        if let Some(head) = self.head {
+            b = b.head(head);
+        }
+        if let Some(path) = &self.pose_model {
+            b = b.pose_model(path);
+        }
+        if let Some(path) = &self.seg_model {
+            b = b.seg_model(path);
+        }
+        b
+    }
+
     /// Loads the pipeline (the segmentation network only when `with_seg`).
     pub fn pipeline(&self, with_seg: bool) -> Result<Pipeline> {
-        let options = PipelineOptions {
-            refine: self.refine,
-            hypotheses: self.hypotheses as usize,
-            rotations: self.rotations,
-            verify_top: self.verify_top as usize,
-            sweep_keep: self.sweep_keep,
-            sampled_hypotheses: self.sampled_hypotheses,
-            network_passes: self.network_passes as usize,
-            ..PipelineOptions::default()
-        };
-        Pipeline::load(
-            self.pose_model.as_deref(),
-            self.head,
-            self.seg_model.as_deref(),
-            with_seg,
-            options,
-        )
+        Ok(self.builder(with_seg).build()?)
     }
 }
 
-/// `{"R": rows, "t": [x, y, z]}`.
+/// `{"R": rows, "t": [x, y, z]}`: [`Pose`]'s serde form (R row-major).
 pub fn pose_json(pose: &Pose) -> Value {
-    let t = pose.translation;
-    json!({"R": pose.rotation_row_major(), "t": [t.x, t.y, t.z]})
+    json!(pose)
 }
 
 /// BOP's `cam_R_m2c` (9 numbers, row-major) and `cam_t_m2c` (mm) of a pose in mesh units.

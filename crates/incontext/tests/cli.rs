@@ -93,11 +93,7 @@ fn register_with_a_mask_finds_the_pose_and_writes_every_output() {
 fn render_writes_depth_and_mask_that_match_the_scene() {
     let sc = SmallScene::new();
     let pose = sc.path("truth.json");
-    let t = sc.truth.translation;
-    write(
-        &pose,
-        &json!({"R": sc.truth.rotation_row_major(), "t": [t.x, t.y, t.z]}),
-    );
+    write(&pose, &json!(sc.truth));
     let out = sc.path("rendered");
     let o = check(
         &[

@@ -124,24 +124,9 @@ pub fn write(path: &Path, v: &Value) {
     std::fs::write(path, serde_json::to_string_pretty(v).unwrap()).unwrap();
 }
 
+/// A pose in its serde form, `{"R": rows, "t": [..]}` (extra keys ignored).
 pub fn pose_of(v: &Value) -> Pose {
-    let r: Vec<f64> = v["R"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .flat_map(|row| row.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()))
-        .collect();
-    let t: Vec<f64> = v["t"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|x| x.as_f64().unwrap())
-        .collect();
-    Pose::from_row_major(
-        [[r[0], r[1], r[2]], [r[3], r[4], r[5]], [r[6], r[7], r[8]]],
-        [t[0], t[1], t[2]],
-    )
-    .unwrap()
+    serde_json::from_value(v.clone()).unwrap()
 }
 
 pub fn register_args(sc: &SmallScene, flag: &str, value: &str) -> Vec<String> {

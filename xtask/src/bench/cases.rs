@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{Context, Result, bail};
-use ic_data::export::{write_object_case, write_room_case};
+use ic_data::export::{CaseFolder, write_object_case, write_room_case};
 use ic_data::{
     Corpus, CorpusOptions, FolderSplit, ObjectSampleConfig, ObjectSampleGenerator, Prefetcher,
     RoomSampleConfig, RoomSampleGenerator, Split,
@@ -104,21 +104,22 @@ fn manifest_for(set: Set, objects: &Objects, seed: u64, count: u64) -> Value {
         "split": "test",
         "objects": objects.describe(),
         "sample": sample,
-        "extra_files": if set == Set::Room { json!(["mask_visib.png"]) } else { json!([]) },
+        "extra_files": if set == Set::Room { json!([CaseFolder::MASK_VISIB]) } else { json!([]) },
     })
 }
 
 fn case_name(i: u64) -> String {
-    format!("case_{i:05}")
+    CaseFolder::name_of(i)
 }
 
 fn complete(dir: &Path, set: Set, count: u64) -> bool {
+    let cases = CaseFolder::new(dir);
     (0..count).all(|i| {
-        let d = dir.join(case_name(i));
-        ["gt.json", "source.ply", "target.ply", "meta.json"]
+        let case = cases.child(i);
+        [case.gt(), case.source(), case.target(), case.meta()]
             .iter()
-            .all(|f| d.join(f).is_file())
-            && (set == Set::Noback || d.join("mask_visib.png").is_file())
+            .all(|f| f.is_file())
+            && (set == Set::Noback || case.dir().join(CaseFolder::MASK_VISIB).is_file())
     })
 }
 
@@ -165,7 +166,7 @@ pub fn ensure(
     std::fs::create_dir_all(&partial).with_context(|| format!("creating {}", partial.display()))?;
     tracing::info!(set = set.name(), count, seed, dir = %dir.display(), "exporting cases");
     let corpus = Arc::new(objects.corpus(Split::Test, seed)?);
-    let bar = crate::bench::progress_bar(count, &format!("cases {}", set.name()));
+    let bar = crate::bench::common::progress_bar(count, &format!("cases {}", set.name()));
     let mut cases = Vec::new();
     match set {
         Set::Noback => {
@@ -193,7 +194,10 @@ pub fn ensure(
                 let name = case_name(s.index);
                 let case_dir = partial.join(&name);
                 write_room_case(&case_dir, &s, seed)?;
-                ic_render::io::write_mask_png(case_dir.join("mask_visib.png"), &s.mask_visib)?;
+                ic_render::io::write_mask_png(
+                    case_dir.join(CaseFolder::MASK_VISIB),
+                    &s.mask_visib,
+                )?;
                 cases.push(json!({"case": name, "object_id": s.object_id, "inlier_rate": s.inlier_rate, "scene_points": s.scene_points.len(), "object_points": s.object_point_count()}));
                 bar.inc(1);
             }
@@ -202,14 +206,14 @@ pub fn ensure(
     bar.finish_and_clear();
     // The same manifest.json as `cargo xtask export-cases`, and the bench's own.
     let config = json!({"set": set.name(), "seed": seed, "corpus": objects.describe(), "split": "test", "count": count, "sample": want["sample"]});
-    crate::bench::write_atomic(
+    crate::bench::common::write_atomic(
         &partial.join("manifest.json"),
         serde_json::to_string_pretty(
             &json!({"config": config, "corpus": corpus.info(), "cases": cases}),
         )?
         .as_bytes(),
     )?;
-    crate::bench::write_atomic(
+    crate::bench::common::write_atomic(
         &partial.join("bench-manifest.json"),
         serde_json::to_string_pretty(&want)?.as_bytes(),
     )?;
@@ -248,7 +252,7 @@ mod tests {
     /// rewritten when the count changes; the room set writes the ground-truth mask.
     #[test]
     fn exports_reuses_and_rewrites_case_sets() {
-        let tmp = crate::bench::tests::TempDir::new("cases");
+        let tmp = crate::bench::common::tests::TempDir::new("cases");
         let dir = tmp.path().join("cases-noback");
         let objects = Objects::Procedural(3);
         let a = ensure(Set::Noback, &objects, 5, 2, &dir, 1).unwrap();

@@ -18,6 +18,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
+use ic_data::export::CaseFolder;
 use ic_data::{ObjectSampleConfig, ObjectSampleGenerator, RoomSampleConfig, Split};
 use ic_geometry::glam::Vec3;
 use ic_geometry::{Intrinsics, ViewSphere};
@@ -25,8 +26,8 @@ use ic_pose::{Head, PoseConfig, PoseEstimator, Refine, Trainer};
 use ic_render::{Background, CpuRenderer, Renderer, SceneBuilder, SceneConfig};
 use serde::Serialize;
 
-use crate::bench_cases::{CaseSet, Objects};
-use crate::bench_run::{SEG_MODEL, pose_model};
+use crate::bench::cases::{CaseSet, Objects};
+use crate::bench::run::{SEG_MODEL, pose_model};
 
 /// Sizes of the paper's Table 3.
 pub const SIZES: [usize; 3] = [512, 1024, 2048];
@@ -194,11 +195,12 @@ pub fn measure(
     repeats: usize,
     train_steps: usize,
 ) -> Result<Speed> {
-    let first = noback.dir.join("case_00000");
-    let source = read_points(&first.join("source.ply"))?;
-    let target = read_points(&first.join("target.ply"))?;
+    let first_case = CaseFolder::new(&noback.dir).child(0);
+    let first = first_case.dir().to_path_buf();
+    let source = read_points(&first_case.source())?;
+    let target = read_points(&first_case.target())?;
     let total = (SIZES.len() * 4 + 1 + 2 + 2) as u64;
-    let bar = crate::bench::progress_bar(total, "speed");
+    let bar = crate::bench::common::progress_bar(total, "speed");
 
     // Registration at 512/1024/2048.
     let mut ours = Vec::new();
@@ -356,7 +358,7 @@ pub fn measure(
         repeats,
         pair: format!(
             "`{}`: source.ply and target.ply resampled to n points each",
-            crate::bench::rel(&first).display()
+            crate::bench::common::rel(&first).display()
         ),
         ours,
         segmentation,
@@ -366,10 +368,10 @@ pub fn measure(
 }
 
 fn segmentation_time(root: &Path, room: &CaseSet, seed: u64, repeats: usize) -> Result<Timed> {
-    let case = room.dir.join("case_00000");
+    let case = CaseFolder::new(&room.dir).child(0);
     let cam: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(case.join("camera.json"))
-            .with_context(|| format!("reading {}", case.join("camera.json").display()))?,
+        &std::fs::read_to_string(case.camera())
+            .with_context(|| format!("reading {}", case.camera().display()))?,
     )?;
     let k: Vec<f64> = cam["cam_K"]
         .as_array()
@@ -384,7 +386,7 @@ fn segmentation_time(root: &Path, room: &CaseSet, seed: u64, repeats: usize) -> 
     let intrinsics = Intrinsics::new(k[0], k[4], k[2], k[5], w, h)?;
     let scale = cam["depth_scale"].as_f64().unwrap_or(1.0);
     let unit_mm = cam["unit_mm"].as_f64().unwrap_or(100.0);
-    let mut depth = ic_render::io::read_depth_png(case.join("depth.png"), scale, Some((w, h)))?;
+    let mut depth = ic_render::io::read_depth_png(case.depth(), scale, Some((w, h)))?;
     // Metres → normalised units, as the network was trained.
     for z in &mut depth.data {
         *z = (*z as f64 * 1000.0 / unit_mm) as f32;

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 
-use crate::bench_cases::{CaseSet, Set};
+use crate::bench::cases::{CaseSet, Set};
 
 /// Our methods, as `incontext eval --method` names them, with the head they need.
 pub const OUR_METHODS: [(&str, &str); 6] = [
@@ -156,7 +156,7 @@ fn run_with_progress(
     tracing::debug!(?cmd, "running");
     let start = Instant::now();
     let mut child = cmd.spawn().map_err(|e| format!("cannot start: {e}"))?;
-    let bar = crate::bench::progress_bar(expected, label);
+    let bar = crate::bench::common::progress_bar(expected, label);
     let status = loop {
         match child.try_wait() {
             Ok(Some(s)) => break s,
@@ -440,7 +440,10 @@ pub fn run_peer_timing(
     threads: usize,
     seed: u64,
 ) -> Result<serde_json::Value, String> {
-    let first = cases.dir.join("case_00000");
+    let first = ic_data::export::CaseFolder::new(&cases.dir)
+        .child(0)
+        .dir()
+        .to_path_buf();
     let sizes_arg = sizes
         .iter()
         .map(|s| s.to_string())
@@ -459,7 +462,7 @@ pub fn run_peer_timing(
         .arg("--out")
         .arg(out);
     eprintln!("== Open3D timing at {sizes_arg} points, {repeats} repeats");
-    let log = crate::bench_cases::sibling(out, "log");
+    let log = crate::bench::cases::sibling(out, "log");
     run_with_progress(cmd, &log, out, 0, "open3d timing")?;
     let text = std::fs::read_to_string(out).map_err(|e| format!("{}: {e}", out.display()))?;
     serde_json::from_str(&text).map_err(|e| format!("{}: {e}", out.display()))

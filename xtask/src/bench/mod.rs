@@ -2,32 +2,41 @@
 //! written up as `docs/results.md` and `docs/results.json` (issue 7).
 //!
 //! 1. cases — the object-alone and room test sets exported from the blob test split (ids
-//!    800–999) with a fixed seed into `<work>/cases-{noback,room}` (`bench_cases`; reused when
+//!    800–999) with a fixed seed into `<work>/cases-{noback,room}` (`cases`; reused when
 //!    the manifest matches);
 //! 2. ours — `incontext eval --cases DIR --method M --out FILE` for the four methods, and on the
-//!    room set the same with `--gt-mask` (the upper bound) when the CLI has it (`bench_run`);
+//!    room set the same with `--gt-mask` (the upper bound) when the CLI has it (`run`);
 //! 3. peers (`--peers`) — `benches/peers/open3d_peers.py` on the same folders, and its timing
 //!    mode;
 //! 4. speed — registration time at 512/1024/2048 points, segmentation at 640×480, renderer
-//!    views/s and training pairs/hour, measured in this process (`bench_speed`);
+//!    views/s and training pairs/hour, measured in this process (`speed`);
 //! 5. report — every JSONL file scored by `ic_eval::cases`, tables, accuracy plots, the
-//!    machine and the command (`bench_report`).
+//!    machine and the command (`report`: `markdown`, `json`).
 //!
 //! `--quick` is the small version CI can afford (20 + 10 cases, written under
 //! `target/bench-quick/`). `--criterion [NAMES]` (or just `cargo xtask bench NAME`) runs the
 //! criterion benchmarks of `benches/` instead, as before.
+//!
+//! This module is the one entry point (`bench::run`, called by `main`). Its modules depend one way, each only on those
+//! listed before it: `common` (progress bars, paths, atomic writes) ← `cases` ← `run` ← `speed`
+//! ← `report` (`report::machine` ← `report` ← `report::markdown`, `report::json`).
+
+pub mod cases;
+pub mod common;
+pub mod report;
+pub mod run;
+pub mod speed;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::bench_cases::{self, CaseSet, Objects, Set};
-use crate::bench_report::{self, Report};
-use crate::bench_run::{self, MethodRun, RunStatus};
-use crate::bench_speed;
+use cases::{CaseSet, Objects, Set};
+use common::rel;
+use report::{Config, Report};
+use run::{MethodRun, RunStatus};
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
@@ -93,59 +102,6 @@ pub struct BenchArgs {
     /// absent do not count.
     #[arg(long)]
     pub strict: bool,
-}
-
-/// Everything a run is, resolved from the arguments; printed first and saved in results.json.
-#[derive(Clone, Debug, serde::Serialize)]
-pub struct Config {
-    pub quick: bool,
-    pub peers: bool,
-    pub seed: u64,
-    pub noback_count: u64,
-    pub room_count: u64,
-    pub threads: usize,
-    pub repeats: usize,
-    pub train_steps: usize,
-    pub out: PathBuf,
-    pub work: PathBuf,
-    pub objects: serde_json::Value,
-    pub speed: bool,
-    pub resume: bool,
-}
-
-pub fn progress_bar(len: u64, what: &str) -> ProgressBar {
-    let bar = if len == 0 {
-        ProgressBar::new_spinner()
-    } else {
-        ProgressBar::new(len)
-    };
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{prefix:>16} [{elapsed_precise}] {wide_bar} {pos}/{len} {msg} (eta {eta})",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    bar.set_prefix(what.to_string());
-    bar
-}
-
-/// `path` relative to the workspace root when it lies inside it (for reports that are
-/// committed), else as given.
-pub fn rel(path: &Path) -> PathBuf {
-    let root = crate::workspace_root();
-    let root = root.canonicalize().unwrap_or(root);
-    path.strip_prefix(&root)
-        .map(Path::to_path_buf)
-        .unwrap_or_else(|_| path.to_path_buf())
-}
-
-/// Writes `bytes` to `path` through a temporary file and a rename.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    ic_geometry::io::write_atomic_with(path, |w| std::io::Write::write_all(w, bytes), |e| e)
-        .with_context(|| format!("writing {}", path.display()))
 }
 
 fn default_objects(root: &Path, given: Option<&Path>, quick: bool) -> Result<Objects> {
@@ -231,7 +187,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         };
         let t0 = Instant::now();
         let dir = work.join(format!("cases-{}", set.name()));
-        let cs = bench_cases::ensure(set, &objects, config.seed, count, &dir, config.threads)?;
+        let cs = cases::ensure(set, &objects, config.seed, count, &dir, config.threads)?;
         report.stage(&format!("cases {}", set.name()), t0.elapsed().as_secs_f64());
         sets.push(cs);
     }
@@ -239,13 +195,13 @@ pub fn run(args: BenchArgs) -> Result<()> {
     // 2. Ours.
     let mut runs: Vec<MethodRun> = Vec::new();
     let t0 = Instant::now();
-    let cli = bench_run::probe_cli(&root, args.incontext.as_deref());
+    let cli = run::probe_cli(&root, args.incontext.as_deref());
     if let Some(why) = &cli.unusable {
         tracing::warn!("our methods will be reported as missing: {why}");
     }
     for cs in &sets {
         let dir = work.join("runs").join(cs.set.name());
-        runs.extend(bench_run::run_ours(
+        runs.extend(run::run_ours(
             &root,
             &cli,
             cs,
@@ -255,7 +211,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
             config.resume,
         )?);
     }
-    report.cli = Some(bench_run::Cli {
+    report.cli = Some(run::Cli {
         path: rel(&cli.path),
         ..cli
     });
@@ -265,12 +221,12 @@ pub fn run(args: BenchArgs) -> Result<()> {
     let mut python = None;
     if config.peers {
         let t0 = Instant::now();
-        match bench_run::probe_python(&root, args.python.as_deref()) {
+        match run::probe_python(&root, args.python.as_deref()) {
             Ok((py, version)) => {
                 report.open3d_version = Some(version);
                 for cs in &sets {
                     let dir = work.join("runs").join(cs.set.name());
-                    runs.extend(bench_run::run_peers(
+                    runs.extend(run::run_peers(
                         &root,
                         &py,
                         cs,
@@ -285,12 +241,12 @@ pub fn run(args: BenchArgs) -> Result<()> {
             Err(why) => {
                 let note = format!(
                     "Open3D peers skipped: {why}. Install them with: {}",
-                    bench_run::PEERS_INSTALL
+                    run::PEERS_INSTALL
                 );
                 eprintln!("{note}");
                 report.notes.push(note);
                 for cs in &sets {
-                    for m in bench_run::PEER_METHODS {
+                    for m in run::PEER_METHODS {
                         runs.push(MethodRun {
                             set: cs.set,
                             label: format!("o3d-{m}"),
@@ -316,7 +272,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
     if config.speed {
         let t0 = Instant::now();
         let (noback, room) = (&sets[0], &sets[1]);
-        report.speed = Some(bench_speed::measure(
+        report.speed = Some(speed::measure(
             &root,
             noback,
             room,
@@ -328,12 +284,12 @@ pub fn run(args: BenchArgs) -> Result<()> {
         )?);
         if let Some(py) = &python {
             let file = work.join("runs/open3d-timing.json");
-            match bench_run::run_peer_timing(
+            match run::run_peer_timing(
                 &root,
                 py,
                 noback,
                 &file,
-                &bench_speed::SIZES,
+                &speed::SIZES,
                 config.repeats,
                 config.threads,
                 config.seed,
@@ -353,7 +309,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
     report.score(&sets, runs)?;
     report.stage("score", t0.elapsed().as_secs_f64());
     report.total_seconds = started.elapsed().as_secs_f64();
-    let written = bench_report::write(&report, &out)?;
+    // results.md (with its plots), then results.json; listed md, json, plots.
+    let mut written = report::markdown::write(&report, &out)?;
+    written.insert(1, report::json::write(&report, &out)?);
     for set in &report.sets {
         println!("\n## {} ({} cases)\n", set.set.title(), set.count);
         println!("{}", ic_eval::cases::markdown_cases_table(&set.scores));
@@ -407,36 +365,4 @@ fn strict_problems(report: &Report) -> Vec<String> {
         }
     }
     out
-}
-
-#[cfg(test)]
-pub mod tests {
-    use std::path::{Path, PathBuf};
-
-    /// A temporary folder removed on drop (xtask has no tempfile).
-    pub struct TempDir(PathBuf);
-
-    impl TempDir {
-        pub fn new(tag: &str) -> Self {
-            use std::sync::atomic::{AtomicU64, Ordering};
-            static N: AtomicU64 = AtomicU64::new(0);
-            let p = std::env::temp_dir().join(format!(
-                "xtask-{tag}-{}-{}",
-                std::process::id(),
-                N.fetch_add(1, Ordering::Relaxed)
-            ));
-            std::fs::create_dir_all(&p).unwrap();
-            TempDir(p)
-        }
-
-        pub fn path(&self) -> &Path {
-            &self.0
-        }
-    }
-
-    impl Drop for TempDir {
-        fn drop(&mut self) {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
-    }
 }

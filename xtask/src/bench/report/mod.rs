@@ -1,0 +1,200 @@
+//! Stage 5 of `cargo xtask bench`: the [`Report`] — the run's [`Config`], the machine, the
+//! stages' times, every result file scored by `ic_eval::cases` — and its two renderings,
+//! [`markdown`] (`results.md` and the plots) and [`json`] (`results.json`).
+//!
+//! Dependencies point one way: `markdown` and `json` read this module's types; this module
+//! uses [`machine`] and the earlier stages (`cases`, `run`, `speed`), never its renderings.
+
+pub mod json;
+pub mod machine;
+pub mod markdown;
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::Result;
+use ic_eval::cases::{MethodScore, ResultLine, read_case_truths, read_result_lines, score_results};
+use serde::Serialize;
+use serde_json::{Value, json};
+
+use crate::bench::cases::{CaseSet, Set};
+use crate::bench::common::rel;
+use crate::bench::run::{Cli, MethodRun, RunStatus, SEG_MODEL, pose_model};
+use crate::bench::speed::Speed;
+use machine::{Machine, git_commit, load_average, utc};
+
+/// Everything a run is, resolved from the arguments; printed first and saved in results.json.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Config {
+    pub quick: bool,
+    pub peers: bool,
+    pub seed: u64,
+    pub noback_count: u64,
+    pub room_count: u64,
+    pub threads: usize,
+    pub repeats: usize,
+    pub train_steps: usize,
+    pub out: PathBuf,
+    pub work: PathBuf,
+    pub objects: serde_json::Value,
+    pub speed: bool,
+    pub resume: bool,
+}
+
+/// One case set's scores.
+#[derive(Clone, Debug, Serialize)]
+pub struct SetReport {
+    pub set: Set,
+    pub count: u64,
+    pub dir: PathBuf,
+    pub cases: Vec<Value>,
+    pub scores: Vec<MethodScore>,
+    /// (label, reason) of methods without scores.
+    pub missing: Vec<(String, String)>,
+}
+
+/// Everything results.md and results.json are made of.
+#[derive(Debug, Serialize)]
+pub struct Report {
+    pub config: Config,
+    pub command: String,
+    pub date: String,
+    pub commit: Option<String>,
+    pub machine: Machine,
+    pub models: Vec<Value>,
+    pub cli: Option<Cli>,
+    pub open3d_version: Option<String>,
+    pub notes: Vec<String>,
+    pub stages: Vec<(String, f64)>,
+    pub runs: Vec<MethodRun>,
+    pub sets: Vec<SetReport>,
+    pub speed: Option<Speed>,
+    pub open3d_timing: Option<Value>,
+    pub total_seconds: f64,
+}
+
+impl Report {
+    pub fn start(root: &Path, config: &Config) -> Report {
+        let args: Vec<String> = std::env::args().skip(1).collect();
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        let models = [
+            pose_model("softmax"),
+            pose_model("ot"),
+            PathBuf::from(SEG_MODEL),
+        ]
+        .iter()
+        .map(|m| {
+            let meta = std::fs::metadata(root.join(m)).ok();
+            json!({"file": m, "present": meta.is_some(), "bytes": meta.map(|m| m.len())})
+        })
+        .collect();
+        let mut config = config.clone();
+        config.out = rel(&config.out);
+        config.work = rel(&config.work);
+        Report {
+            config,
+            command: format!("cargo xtask {}", args.join(" ")),
+            date: utc(now),
+            commit: git_commit(root),
+            machine: Machine::probe(),
+            models,
+            cli: None,
+            open3d_version: None,
+            notes: Vec::new(),
+            stages: Vec::new(),
+            runs: Vec::new(),
+            sets: Vec::new(),
+            speed: None,
+            open3d_timing: None,
+            total_seconds: 0.0,
+        }
+    }
+
+    pub fn stage(&mut self, name: &str, seconds: f64) {
+        tracing::info!(
+            stage = name,
+            seconds = format!("{seconds:.1}"),
+            "stage done"
+        );
+        self.stages.push((name.to_string(), seconds));
+    }
+
+    /// Scores every run that produced a file; a file that cannot be read or scored turns that
+    /// method into a missing one with the reason (the others are still reported).
+    pub fn score(&mut self, sets: &[CaseSet], runs: Vec<MethodRun>) -> Result<()> {
+        let mut files: HashMap<PathBuf, Result<Vec<ResultLine>, String>> = HashMap::new();
+        for cs in sets {
+            let truths = read_case_truths(&cs.dir)?;
+            let mut report = SetReport {
+                set: cs.set,
+                count: cs.count,
+                dir: rel(&cs.dir),
+                cases: cs.cases.clone(),
+                scores: Vec::new(),
+                missing: Vec::new(),
+            };
+            for run in runs.iter().filter(|r| r.set == cs.set) {
+                let file = match &run.status {
+                    RunStatus::Ran { file, .. } => file,
+                    RunStatus::Missing { reason } => {
+                        report
+                            .missing
+                            .push((run.label.clone(), format!("not run: {reason}")));
+                        continue;
+                    }
+                    RunStatus::Failed { reason } => {
+                        report
+                            .missing
+                            .push((run.label.clone(), format!("failed: {reason}")));
+                        continue;
+                    }
+                };
+                let lines = files
+                    .entry(file.clone())
+                    .or_insert_with(|| read_result_lines(file).map_err(|e| e.to_string()));
+                let lines: Vec<ResultLine> = match lines {
+                    Ok(l) => l
+                        .iter()
+                        // The peers share one file; our files hold one method each.
+                        .filter(|l| !run.peer || l.method == run.method)
+                        .cloned()
+                        .map(|mut l| {
+                            l.method = run.label.clone();
+                            l
+                        })
+                        .collect(),
+                    Err(e) => {
+                        report.missing.push((run.label.clone(), e.clone()));
+                        continue;
+                    }
+                };
+                if lines.is_empty() {
+                    report.missing.push((
+                        run.label.clone(),
+                        format!("{} holds no line for it", file.display()),
+                    ));
+                    continue;
+                }
+                match score_results(&truths, &lines) {
+                    Ok(mut s) => report.scores.append(&mut s),
+                    Err(e) => report.missing.push((run.label.clone(), e.to_string())),
+                }
+            }
+            self.sets.push(report);
+        }
+        self.runs = runs;
+        self.machine.load_average_end = load_average();
+        Ok(())
+    }
+
+    pub(super) fn open3d_median(&self, method: &str, points: usize) -> Option<f64> {
+        self.open3d_timing.as_ref()?["results"]
+            .as_array()?
+            .iter()
+            .find(|r| r["method"] == method && r["points"].as_u64() == Some(points as u64))?
+            ["median_seconds"]
+            .as_f64()
+    }
+}
