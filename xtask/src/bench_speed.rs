@@ -21,8 +21,9 @@ use anyhow::{Context, Result};
 use ic_data::{ObjectSampleConfig, ObjectSampleGenerator, RoomSampleConfig, Split};
 use ic_geometry::glam::Vec3;
 use ic_geometry::{Intrinsics, ViewSphere};
-use ic_pose::{Head, PoseConfig, PoseEstimator, Refine, Trainer};
+use ic_pose::{Head, PoseConfig, PoseEstimator, Refine};
 use ic_render::{Background, CpuRenderer, Renderer, SceneBuilder, SceneConfig};
+use ic_train::PoseTrainer as Trainer;
 use serde::Serialize;
 
 use crate::bench_cases::{CaseSet, Objects};
@@ -398,7 +399,7 @@ fn segmentation_time(root: &Path, room: &CaseSet, seed: u64, repeats: usize) -> 
         )
     } else {
         (
-            ic_seg::SegTrainer::new(ic_seg::SegConfig::cpu(), seed)?.segmenter(),
+            ic_train::SegTrainer::new(ic_seg::SegConfig::cpu(), seed)?.segmenter(),
             Some(format!(
                 "untrained cpu-preset weights: {SEG_MODEL} is absent"
             )),
