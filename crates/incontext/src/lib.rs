@@ -7,7 +7,7 @@
 //! and sampled) in a depth map or onto observed points, with per-stage timings. [`inputs`]
 //! reads the user's files with checks that name the file, and [`arrays`] makes the same checks
 //! on inputs held in memory (the Python module's entry point); [`overlay`] draws results; the
-//! command modules ([`register`], [`demo`], [`eval`], [`render`]) are what `incontext <command>`
+//! command modules ([`register`], [`demo`], [`eval`], [`render`], [`train`]) are what `incontext <command>`
 //! runs. Every failure is a [`CliError`] whose kind gives the exit code: 2 bad input, 3 object
 //! not found, 1 internal.
 //!
@@ -36,6 +36,7 @@ pub mod overlay;
 pub mod pipeline;
 pub mod register;
 pub mod render;
+pub mod train;
 pub mod verify;
 
 pub use error::{CliError, ErrorKind, Result, ResultExt};
