@@ -14,7 +14,8 @@ use candle_core::Tensor;
 use criterion::{Criterion, criterion_group, criterion_main};
 use glam::Vec3;
 use ic_data::Assignment;
-use ic_pose::{Head, PoseConfig, PoseEstimator, Trainer};
+use ic_pose::{Head, PoseConfig, PoseEstimator};
+use ic_train::PoseTrainer as Trainer;
 use rand::{Rng, SeedableRng};
 
 #[global_allocator]

@@ -9,7 +9,8 @@ use std::hint::black_box;
 use criterion::{Criterion, criterion_group, criterion_main};
 use glam::Vec3;
 use ic_geometry::{DepthImage, Intrinsics, Mask};
-use ic_seg::{GeometricConfig, SegConfig, SegExample, SegTrainer, segment_geometric};
+use ic_seg::{GeometricConfig, SegConfig, SegExample, segment_geometric};
+use ic_train::SegTrainer;
 
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;

@@ -17,6 +17,9 @@
 //! - `cargo xtask export-cases --set <noback|room> …` writes registration cases (`source.ply`,
 //!   `target.ply`, `gt.json`, `meta.json`; room cases also `depth.png`, `camera.json`).
 //!
+//! The training and evaluation commands below are thin wrappers of the `ic_train` crate (the
+//! user-facing `incontext train pose|seg` calls the same code).
+//!
 //! - `cargo xtask train-pose --preset cpu|paper --head softmax|ot --objects DIR|MIXTURE --out DIR
 //!   [--protocol paper|deployment] [--init WEIGHTS] …` trains the pose network on samples
 //!   rendered on the fly (resumable, Ctrl-C saves; validation on the `val` objects with the
@@ -38,7 +41,6 @@
 mod bench;
 mod data;
 mod pose;
-mod run;
 mod seg;
 mod symmetries;
 mod verify_report;

@@ -85,6 +85,9 @@ pub enum FolderSplit {
     /// stems (strings or numbers). `val` is needed only to load the validation split. The
     /// lists present must be disjoint (checked whenever a split is loaded).
     File(PathBuf),
+    /// Every mesh of the folder, whatever the split: a user's handful of objects, where the
+    /// training and validation views differ but the objects do not (`incontext train`).
+    All,
 }
 
 impl FolderSplit {
@@ -521,6 +524,7 @@ impl Corpus {
                 };
                 Box::new(move |s: &str| s.parse::<u64>().is_ok_and(|id| (lo..=hi).contains(&id)))
             }
+            FolderSplit::All => Box::new(|_: &str| true),
             FolderSplit::File(path) => {
                 let ids = split_file_ids(path, split)?;
                 Box::new(move |s: &str| {

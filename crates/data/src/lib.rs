@@ -37,7 +37,6 @@
 //! assert_eq!(generator.sample(0).unwrap(), sample);
 //! ```
 
-mod assignment;
 mod corpus;
 /// Deployment-like sampling: whole-sphere views, roll, distance by image span, truncation,
 /// scale augmentation, occluders, the sensor model with drawn strengths.
@@ -53,13 +52,15 @@ pub mod bop;
 /// Registration cases for external tools (Open3D, TEASER++).
 pub mod export;
 
-pub use assignment::Assignment;
 pub use corpus::{
     Corpus, CorpusInfo, CorpusKind, CorpusObject, CorpusOptions, FolderSplit, MixturePart,
     ObjectEntry, ObjectSource, OnBadMesh, SourceInfo, Split, TRAINING_SYMMETRY_OPTIONS,
 };
 pub use deploy::SamplingProtocol;
 pub use error::DataError;
+/// The ground-truth assignment, defined in `ic_geometry` (so `ic_pose` reads it without
+/// depending on this crate) and built here by every sample generator.
+pub use ic_geometry::Assignment;
 pub use prefetch::{Batches, Prefetcher};
 pub use room::{
     ROOM_UNIT_MM, RoomSample, RoomSampleConfig, RoomSampleGenerator, RoomView, mask_bbox,

@@ -27,6 +27,9 @@
 // `!(x > 0.0)` is how this crate rejects NaN together with non-positive values, on purpose.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+/// The ground-truth assignment M̄ between model and observed points (mutual nearest
+/// neighbours under the true pose).
+pub mod assignment;
 mod camera;
 mod cloud;
 mod error;
@@ -47,6 +50,7 @@ pub mod shapes;
 /// Rotational symmetries of a model (discrete and continuous), found on its surface.
 pub mod symmetry;
 
+pub use assignment::Assignment;
 pub use camera::{Intrinsics, ViewSphere, Viewpoint, look_at};
 pub use cloud::{
     PointCloud, estimate_normals, random_subsample, random_subsample_indices, voxel_downsample,

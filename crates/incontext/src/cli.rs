@@ -12,6 +12,7 @@ Examples:
   incontext eval --dataset target/data --out eval-out
   incontext eval --cases cases --method ours-softmax,ours-softmax-icp --out results.jsonl
   incontext render --model obj_000001.ply --camera camera.json --pose pose.json --out rendered
+  incontext train pose --objects my-meshes --out my-pose --minutes 30
 
 Units: meshes are in the depth map's units after the camera's depth_scale, i.e. mm for BOP
 (--model-unit-mm for other units). Poses map model to camera coordinates, x_cam = R·x + t,
@@ -85,6 +86,17 @@ Examples:
 Example:
   incontext render --model obj_000001.ply --camera camera.json --pose pose.json --out rendered")]
     Render(crate::render::RenderArgs),
+    /// Fine-tune the pose or segmentation network on your own meshes (views rendered on the
+    /// fly); writes a checkpoint that register's --pose-model / --seg-model loads.
+    #[command(after_help = "\
+Examples:
+  incontext train pose --objects my-meshes --out my-pose --minutes 30
+  incontext register --pose-model my-pose/final.safetensors --model my-meshes/part.ply \\
+      --depth depth.png --camera camera.json
+  incontext train seg --objects my-meshes --out my-seg --iterations 500 --threads 4
+
+Ctrl-C (or SIGTERM) saves a checkpoint and exits with code 130: continue with --resume.")]
+    Train(crate::train::TrainArgs),
 }
 
 /// Runs a parsed command; returns its JSON report and the text for people.
@@ -116,6 +128,11 @@ pub fn run(cli: &Cli) -> Result<(Value, String)> {
                     report["out"].as_str().unwrap_or("?")
                 ),
             };
+            Ok((report, text))
+        }
+        Command::Train(a) => {
+            let report = crate::train::run(a, cli.seed)?;
+            let text = crate::train::summary_text(&report);
             Ok((report, text))
         }
         Command::Render(a) => {

@@ -16,7 +16,7 @@
 //! The command line's side: [`inputs`] reads the user's files with checks that name the file,
 //! and [`arrays`] makes the same checks on inputs held in memory (the Python module's entry
 //! point); [`overlay`] draws results; the command modules ([`register`], [`demo`], [`eval`],
-//! [`render`]) are what `incontext <command>` runs. Their failures are [`CliError`]s whose
+//! [`render`], [`train`]) are what `incontext <command>` runs. Their failures are [`CliError`]s whose
 //! kind gives the exit code: 2 bad input, 3 object not found, 1 internal (a
 //! [`PipelineError`] converts into the kind of the same name).
 //!
@@ -92,6 +92,7 @@ pub mod overlay;
 pub mod pipeline;
 pub mod register;
 pub mod render;
+pub mod train;
 pub mod verify;
 
 pub use error::{CliError, ErrorKind, Result, ResultExt};

@@ -50,8 +50,17 @@ fn main() -> ExitCode {
         );
     }
     // Ctrl-C, SIGTERM, SIGHUP: remove the temporary files of writes in flight and exit 130;
-    // outputs already written stay complete, none is left half-written.
-    let _ = ctrlc::set_handler(|| {
+    // outputs already written stay complete, none is left half-written. `train` first asks the
+    // run to save its checkpoint and stop (exit 130 below); a second signal exits at once.
+    let training = matches!(cli.command, incontext::cli::Command::Train(_));
+    let _ = ctrlc::set_handler(move || {
+        if training && !ic_train::stop_flag().swap(true, std::sync::atomic::Ordering::SeqCst) {
+            let _ = writeln!(
+                std::io::stderr(),
+                "interrupted: saving a checkpoint after this iteration (again to quit at once)"
+            );
+            return;
+        }
         let _guard = ic_geometry::io::abandon_pending_writes();
         let _ = writeln!(
             std::io::stderr(),
@@ -78,6 +87,15 @@ fn main() -> ExitCode {
                 out(&incontext::inputs::pretty_json(&report));
             } else {
                 out(text.trim_end());
+            }
+            // `train` stopped by a signal: its checkpoint is saved; exit 130 as documented.
+            if report["command"] == "train" && report["interrupted"] == true {
+                let _ = writeln!(
+                    std::io::stderr(),
+                    "error: interrupted; checkpoint saved in {}",
+                    report["checkpoint"].as_str().unwrap_or("?")
+                );
+                return ExitCode::from(130);
             }
             // `register` found a pose but cannot vouch for it: written, flagged, exit 4.
             if report["command"] == "register" && report["verdict"] == "uncertain" {

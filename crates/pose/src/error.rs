@@ -33,8 +33,6 @@ pub enum PoseError {
     Candle(#[from] candle_core::Error),
     #[error(transparent)]
     Geometry(#[from] ic_geometry::GeometryError),
-    #[error(transparent)]
-    Data(#[from] ic_data::DataError),
 }
 
 pub type Result<T, E = PoseError> = std::result::Result<T, E>;

@@ -22,9 +22,11 @@
 //! # Ok(()) }
 //! ```
 //!
-//! Training ([`Trainer`]) builds a network with seeded weights, steps Adam on batches of
-//! `ic_data` samples and saves checkpoints (safetensors, configuration in the metadata,
-//! written atomically) from which a run resumes to the same numbers.
+//! Training lives in `ic_train` (its `PoseTrainer` builds a network with seeded weights,
+//! steps Adam on batches of rendered samples and saves the checkpoints [`checkpoint`]
+//! describes); this crate holds what training needs of the network — [`nll_loss`] over a
+//! ground-truth [`Assignment`], [`nearest_assignments`], [`correspondence_accuracy`] — and
+//! depends on no renderer, so an inference-only user of [`PoseEstimator`] compiles none.
 //!
 //! Implementation notes (measured with candle 0.11 on CPU): on the CPU with f32 the hot
 //! layers are fused candle custom ops with hand-written backward passes — attention
@@ -47,7 +49,6 @@ pub mod layers;
 pub mod network;
 pub mod recover;
 pub mod sinkhorn;
-pub mod train;
 pub mod transformer;
 
 /// Environment settings for candle's own CPU thread pool that suit the fused kernels.
@@ -76,6 +77,8 @@ pub unsafe fn tune_candle_cpu_pool() {
 pub use config::{Head, NetConfig, OtConfig, OtLoss, PoseConfig, TrainConfig};
 pub use error::{PoseError, Result};
 pub use estimator::{CopyEstimate, PoseEstimate, PoseEstimator, SweepOptions};
+/// The ground-truth assignment M̄ the loss reads (defined in `ic_geometry`, built by `ic_data`).
+pub use ic_geometry::Assignment;
 pub use ic_nn::{adam, seeded_var_builder};
 pub use network::{
     HeadOutput, Match, PairBatch, PoseNet, SweepBatch, correspondence_accuracy,
@@ -84,4 +87,3 @@ pub use network::{
 pub use recover::{
     Recovered, RecoveryOptions, Refine, SampledPose, SamplingOptions, recover_pose, sample_poses,
 };
-pub use train::{StepStats, Trainer};

@@ -7,7 +7,7 @@
 use candle_core::{DType, Device, Result as CResult, Tensor};
 use candle_nn::VarBuilder;
 use glam::Vec3;
-use ic_data::Assignment;
+use ic_geometry::Assignment;
 
 use crate::config::{Head, NetConfig, OtLoss};
 use crate::dgcnn::Dgcnn;

@@ -9,9 +9,10 @@ use ic_geometry::Pose;
 use ic_pose::adam::is_trainable;
 use ic_pose::checkpoint::{self, CONFIG_KEY};
 use ic_pose::{
-    Head, Match, PairBatch, PoseConfig, PoseError, PoseEstimator, RecoveryOptions, Trainer,
-    nll_loss, recover_pose,
+    Head, Match, PairBatch, PoseConfig, PoseError, PoseEstimator, RecoveryOptions, nll_loss,
+    recover_pose,
 };
+use ic_train::PoseTrainer as Trainer;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 

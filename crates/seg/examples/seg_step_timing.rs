@@ -7,7 +7,8 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 use std::time::Instant;
 
 use ic_geometry::{DepthImage, Mask};
-use ic_seg::{SegConfig, SegExample, SegTrainer};
+use ic_seg::{SegConfig, SegExample};
+use ic_train::SegTrainer;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let preset = std::env::args().nth(1).unwrap_or_else(|| "cpu".into());

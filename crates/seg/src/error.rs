@@ -29,8 +29,6 @@ pub enum SegError {
     },
     #[error(transparent)]
     Geometry(#[from] ic_geometry::GeometryError),
-    #[error(transparent)]
-    Data(#[from] ic_data::DataError),
     #[error("network: {0}")]
     Candle(#[from] candle_core::Error),
 }

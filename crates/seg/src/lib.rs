@@ -9,30 +9,34 @@
 //!   1.2 normalised units around the masked points' centre.
 //! - [`Segmenter`]: the inference API, any resolution in, a full-resolution mask out, or a
 //!   typed [`SegError::ObjectNotFound`].
-//! - [`SegTrainer`]: seeded, resumable training on depth maps and masks.
+//! - [`SegExample`], [`seg_loss`]: what training needs of the network (the trainer itself,
+//!   seeded and resumable, is `ic_train::SegTrainer`).
 //! - [`geometric`]: RANSAC plane removal + Euclidean clustering, no network.
 //!
 //! It knows nothing about pose.
 //!
 //! ```
 //! use ic_geometry::{DepthImage, Intrinsics, Mask};
-//! use ic_seg::{SegConfig, SegExample, SegTrainer};
-//! // A tiny network, one step on a synthetic depth map with a square in front of a wall.
+//! use ic_seg::{SegConfig, SegExample, Segmenter, seg_loss, unet::UNet};
+//! // A tiny network with seeded weights on a synthetic depth map: a square in front of a wall.
 //! let cfg = SegConfig::tiny();
 //! let mut depth = DepthImage::filled(64, 48, 3.0);
 //! let mut mask = Mask::filled(64, 48, false);
 //! for v in 16..32 { for u in 24..40 { depth.data[v * 64 + u] = 2.0; mask.data[v * 64 + u] = true; } }
 //! let example = SegExample::new(&depth, &mask, &cfg)?;
-//! let mut trainer = SegTrainer::new(cfg, 7)?;
-//! let stats = trainer.step(&[example.clone(), example])?;
-//! assert!(stats.loss.is_finite());
+//! assert_eq!(example.target.len(), (cfg.net.input_width * cfg.net.input_height) as usize);
+//! let varmap = candle_nn::VarMap::new();
+//! let device = candle_core::Device::Cpu;
+//! let net = UNet::new(ic_nn::seeded_var_builder(&varmap, 7, &device), &cfg.net)?;
+//! let segmenter = Segmenter::from_parts(net, cfg);
 //! let k = Intrinsics::new(60.0, 60.0, 31.5, 23.5, 64, 48)?;
-//! // After one step the object may or may not be found; either answer is typed.
-//! match trainer.segmenter().segment(&depth, &k) {
+//! // Untrained, the object may or may not be found; either answer is typed.
+//! match segmenter.segment(&depth, &k) {
 //!     Ok(seg) => assert_eq!(seg.mask.width, 64),
 //!     Err(ic_seg::SegError::ObjectNotFound { .. }) => {}
 //!     Err(e) => return Err(e.into()),
 //! }
+//! # let _ = seg_loss;
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
@@ -53,4 +57,4 @@ pub use config::{PostConfig, SegConfig, SegTrainConfig, UNetConfig};
 pub use error::{Result, SegError};
 pub use geometric::{GeometricConfig, GeometricSegmentation, segment_geometric};
 pub use segmenter::{Segmentation, Segmenter};
-pub use train::{SegExample, SegStepStats, SegTrainer, seg_loss};
+pub use train::{SegExample, seg_loss};

@@ -22,8 +22,9 @@ use ic_data::export::CaseFolder;
 use ic_data::{ObjectSampleConfig, ObjectSampleGenerator, RoomSampleConfig, Split};
 use ic_geometry::glam::Vec3;
 use ic_geometry::{Intrinsics, ViewSphere};
-use ic_pose::{Head, PoseConfig, PoseEstimator, Refine, Trainer};
+use ic_pose::{Head, PoseConfig, PoseEstimator, Refine};
 use ic_render::{Background, CpuRenderer, Renderer, SceneBuilder, SceneConfig};
+use ic_train::PoseTrainer as Trainer;
 use serde::Serialize;
 
 use crate::bench::cases::{CaseSet, Objects};
@@ -400,7 +401,7 @@ fn segmentation_time(root: &Path, room: &CaseSet, seed: u64, repeats: usize) -> 
         )
     } else {
         (
-            ic_seg::SegTrainer::new(ic_seg::SegConfig::cpu(), seed)?.segmenter(),
+            ic_train::SegTrainer::new(ic_seg::SegConfig::cpu(), seed)?.segmenter(),
             Some(format!(
                 "untrained cpu-preset weights: {SEG_MODEL} is absent"
             )),

@@ -1,5 +1,9 @@
 //! The ground-truth assignment M̄ of the paper, stored compactly.
 //!
+//! It lives here, beside the k-d tree and the poses it is built from, so that the training
+//! data (`ic_data`, which builds it) and the pose network (`ic_pose`, whose loss reads it) share
+//! it without the network depending on the renderer.
+//!
 //! Built as in the paper (Sec. 4, "ground-truth assignment"): the model points X are moved by
 //! the true pose, and a model point i and an observed point j match when each is the other's
 //! nearest neighbour (the forward–backward check that keeps the matching bipartite) and they
@@ -7,8 +11,8 @@
 //! its outlier bin. The dense (M+1)×(N+1) matrix is therefore a partial permutation plus bins:
 //! every real row and every real column sums to 1.
 
+use crate::{GeometryError, KdTree, Pose};
 use glam::Vec3;
-use ic_geometry::{GeometryError, KdTree, Pose};
 use serde::{Deserialize, Serialize};
 
 /// M̄ for M model points and N observed points: for each observed point, the matched model

@@ -1,0 +1,568 @@
+//! The segmentation network (`ic_seg`) trained on room scenes rendered on the fly by
+//! `ic_data`, and measured on test-split scenes beside the geometry-only alternative
+//! (`cargo xtask train-seg` / `eval-seg`, `incontext train seg`).
+//!
+//! Objects as for the pose network: ids 000–749 train, 750–799 the fixed validation set
+//! (seed [`VALIDATION_SEED`]), 800–999 (the test split) only for `eval-seg`; or every mesh of
+//! a user's folder for both ([`train_objects`]). A run folder holds `latest.safetensors`,
+//! `best.safetensors` + `best.json` (validation score = mean IoU + found rate),
+//! `final.safetensors`, `train.csv` (`iteration,loss,iou,loss_avg,iou_avg,scenes_per_s,elapsed_s`)
+//! and `val.csv`.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use candle_core::{DType, Tensor};
+use candle_nn::VarBuilder;
+use ic_data::{
+    Corpus, CorpusOptions, FolderSplit, Prefetcher, RoomSampleConfig, RoomSampleGenerator,
+    RoomView, Split,
+};
+use ic_geometry::Mask;
+use ic_render::CpuRenderer;
+use ic_seg::checkpoint::{CONFIG_KEY, STATE_KEY};
+use ic_seg::input::INPUT_CHANNELS;
+use ic_seg::post::iou;
+use ic_seg::unet::UNet;
+use ic_seg::{GeometricConfig, SegConfig, SegError, SegExample, Segmenter, seg_loss};
+use indicatif::ProgressBar;
+
+use crate::{Network, Outcome, RunControl, StepRow, Task, Trainer, Validation};
+
+/// Seed of the validation scene stream (fixed whatever the run's seed).
+pub const VALIDATION_SEED: u64 = 0x7365_6776;
+
+/// The segmentation network's trainer.
+pub type SegTrainer = Trainer<UNet>;
+
+impl Network for UNet {
+    type Config = SegConfig;
+    type Error = SegError;
+    const CONFIG_KEY: &'static str = CONFIG_KEY;
+    const STATE_KEY: &'static str = STATE_KEY;
+
+    fn build(vb: VarBuilder, config: &SegConfig) -> Result<Self, SegError> {
+        Ok(UNet::new(vb, &config.net)?)
+    }
+    fn validate(config: &SegConfig) -> Result<(), SegError> {
+        config.validate()
+    }
+    fn read_config(path: &Path) -> Result<SegConfig, SegError> {
+        ic_seg::checkpoint::read_config(path)
+    }
+    fn same_network(a: &SegConfig, b: &SegConfig) -> bool {
+        a.net == b.net
+    }
+    fn learning_rate(config: &SegConfig) -> f64 {
+        config.train.learning_rate
+    }
+    fn set_learning_rate(config: &mut SegConfig, learning_rate: f64) {
+        config.train.learning_rate = learning_rate;
+    }
+    fn iterations(config: &SegConfig) -> u64 {
+        config.train.iterations
+    }
+    fn set_iterations(config: &mut SegConfig, iterations: u64) {
+        config.train.iterations = iterations;
+    }
+}
+
+/// What one segmentation step measured.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SegStepStats {
+    pub loss: f32,
+    /// Mean over the batch of the IoU of `logit > 0` with the target, at the network's
+    /// resolution.
+    pub iou: f64,
+}
+
+impl Trainer<UNet> {
+    /// A segmenter sharing the current weights (inference mode), e.g. for validation.
+    pub fn segmenter(&self) -> Segmenter {
+        Segmenter::from_parts(self.net.clone(), self.config.clone())
+    }
+
+    fn tensors(&self, examples: &[SegExample]) -> Result<(Tensor, Tensor), SegError> {
+        let (w, h) = (
+            self.config.net.input_width as usize,
+            self.config.net.input_height as usize,
+        );
+        let b = examples.len();
+        let mut input = Vec::with_capacity(b * INPUT_CHANNELS * w * h);
+        let mut target = Vec::with_capacity(b * w * h);
+        for e in examples {
+            if e.input.len() != INPUT_CHANNELS * w * h || e.target.len() != w * h {
+                return Err(SegError::Input(format!(
+                    "example is not {INPUT_CHANNELS}×{h}×{w}"
+                )));
+            }
+            input.extend_from_slice(&e.input);
+            target.extend_from_slice(&e.target);
+        }
+        Ok((
+            Tensor::from_vec(input, (b, INPUT_CHANNELS, h, w), &self.device)?,
+            Tensor::from_vec(target, (b, 1, h, w), &self.device)?,
+        ))
+    }
+
+    /// The loss of `examples` without a step (inference mode).
+    pub fn loss(&self, examples: &[SegExample]) -> Result<f32, SegError> {
+        let (x, y) = self.tensors(examples)?;
+        let logits = self.net.forward_t(&x, false)?;
+        Ok(seg_loss(&logits, &y, self.config.train.dice_weight)?.to_scalar::<f32>()?)
+    }
+
+    /// One step: forward (training mode), loss, backward, Adam.
+    pub fn step(&mut self, examples: &[SegExample]) -> Result<SegStepStats, SegError> {
+        if examples.is_empty() {
+            return Err(SegError::Input("empty batch".into()));
+        }
+        let (x, y) = self.tensors(examples)?;
+        let logits = self.net.forward_t(&x, true)?;
+        let loss = seg_loss(&logits, &y, self.config.train.dice_weight)?;
+        let grads = loss.backward()?;
+        self.apply(&grads)?;
+        let pred = logits
+            .detach()
+            .gt(0.0)?
+            .to_dtype(DType::F32)?
+            .flatten_from(1)?;
+        let yt = y.flatten_from(1)?;
+        let inter = (&pred * &yt)?.sum(1)?.to_vec1::<f32>()?;
+        let union = ((&pred + &yt)?.gt(0.0)?.to_dtype(DType::F32)?)
+            .sum(1)?
+            .to_vec1::<f32>()?;
+        let iou = inter
+            .iter()
+            .zip(&union)
+            .map(|(i, u)| if *u > 0.0 { (i / u) as f64 } else { 1.0 })
+            .sum::<f64>()
+            / examples.len() as f64;
+        Ok(SegStepStats {
+            loss: loss.to_scalar::<f32>()?,
+            iou,
+        })
+    }
+}
+
+#[derive(clap::Args)]
+pub struct TrainArgs {
+    /// `cpu` or `tiny` (smoke tests).
+    #[arg(long, default_value = "cpu")]
+    pub preset: String,
+    /// Folder of meshes with numeric stems (the blob folder: 000–999).
+    #[arg(long)]
+    pub objects: PathBuf,
+    /// Output folder: latest.safetensors (resumable), best.safetensors (weights), CSV logs.
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub iterations: Option<u64>,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Continue from `<out>/latest.safetensors` (configuration and seed come from it).
+    #[arg(long)]
+    pub resume: bool,
+    /// Compute threads (RAYON_NUM_THREADS); the scene renderers add `--data-workers` threads.
+    #[arg(long)]
+    pub threads: Option<usize>,
+    #[arg(long, default_value_t = 1)]
+    pub data_workers: usize,
+    #[arg(long, default_value_t = 300)]
+    pub checkpoint_secs: u64,
+    #[arg(long, default_value_t = 250)]
+    pub validate_every: u64,
+    #[arg(long, default_value_t = 48)]
+    pub validation_count: u64,
+    #[arg(long)]
+    pub batch_size: Option<usize>,
+    #[arg(long)]
+    pub learning_rate: Option<f64>,
+}
+
+#[derive(clap::Args)]
+pub struct EvalArgs {
+    #[arg(long)]
+    pub model: PathBuf,
+    #[arg(long)]
+    pub objects: PathBuf,
+    /// `test` (800–999) or `val` (750–799).
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    #[arg(long, default_value_t = 300)]
+    pub count: u64,
+    #[arg(long, default_value_t = 2021)]
+    pub seed: u64,
+    /// Also run the geometry-only alternative (RANSAC planes + Euclidean clustering).
+    #[arg(long)]
+    pub geometric: bool,
+    /// Override the depth-edge refinement band (pixels at 640 wide; 0 = off).
+    #[arg(long)]
+    pub depth_refine_px: Option<usize>,
+    /// Override the pixel probability threshold.
+    #[arg(long)]
+    pub pixel_threshold: Option<f32>,
+    /// Where to write the JSON (default `<model>.eval-<split>.json`).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    #[arg(long)]
+    pub threads: Option<usize>,
+}
+
+/// The room-scene objects of a flat folder of numeric stems: with `holdout`, 000–749 train and
+/// 750–799 as the "test" split (the validation objects); else 000–799 / 800–999.
+pub fn corpus(objects: &Path, split: Split, holdout: bool) -> Result<Arc<Corpus>> {
+    let fs = if holdout {
+        FolderSplit::IdRange {
+            train: (0, 749),
+            test: (750, 799),
+        }
+    } else {
+        FolderSplit::blobs()
+    };
+    Ok(Arc::new(Corpus::mesh_folder(
+        objects,
+        &fs,
+        split,
+        CorpusOptions::default(),
+    )?))
+}
+
+/// IoU and found-rate over views, as `eval-seg` and the validation report them.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct MaskMetrics {
+    pub count: usize,
+    /// Views where an instance was returned and its IoU with the visible mask is ≥ 0.5.
+    pub found_rate: f64,
+    /// Views where nothing scored above the threshold.
+    pub not_found: usize,
+    pub iou_median: f64,
+    pub iou_mean: f64,
+    /// Fraction of views with IoU ≥ 0.9.
+    pub iou_at_least_0_9: f64,
+    pub seconds_median: f64,
+}
+
+/// Per-view IoUs, times and misses of one method, as the views come.
+#[derive(Default)]
+pub struct MaskTally {
+    pub ious: Vec<f64>,
+    pub seconds: Vec<f64>,
+    pub not_found: usize,
+}
+
+impl MaskTally {
+    /// Records one view: `found` is the method's mask (or its error) for `truth`, computed
+    /// since `started`. Object-not-found counts IoU 0; any other error stops the evaluation.
+    pub fn add(
+        &mut self,
+        truth: &Mask,
+        started: Instant,
+        found: Result<Mask, SegError>,
+    ) -> Result<()> {
+        match found {
+            Ok(mask) => self.ious.push(iou(&mask, truth)),
+            Err(SegError::ObjectNotFound { .. }) => {
+                self.not_found += 1;
+                self.ious.push(0.0);
+            }
+            Err(e) => return Err(e.into()),
+        }
+        self.seconds.push(started.elapsed().as_secs_f64());
+        Ok(())
+    }
+
+    pub fn metrics(&self) -> MaskMetrics {
+        let ious = &self.ious;
+        let n = ious.len();
+        MaskMetrics {
+            count: n,
+            found_rate: ious.iter().filter(|&&i| i >= 0.5).count() as f64 / n.max(1) as f64,
+            not_found: self.not_found,
+            iou_median: ic_eval::median(ious),
+            iou_mean: ious.iter().sum::<f64>() / n.max(1) as f64,
+            iou_at_least_0_9: ious.iter().filter(|&&i| i >= 0.9).count() as f64 / n.max(1) as f64,
+            seconds_median: ic_eval::median(&self.seconds),
+        }
+    }
+}
+
+/// The network's masks on `views` (a view where nothing is found counts IoU 0).
+pub fn evaluate_network(seg: &Segmenter, views: &[RoomView]) -> Result<MaskMetrics> {
+    let mut tally = MaskTally::default();
+    for v in views {
+        let t = Instant::now();
+        let found = seg.segment(&v.depth, &v.intrinsics).map(|s| s.mask);
+        tally.add(&v.mask_visib, t, found)?;
+    }
+    Ok(tally.metrics())
+}
+
+/// The trainer a run starts with: its own checkpoint (`--resume`), `init` weights (fresh
+/// optimiser, iteration 0; the preset's overrides apply), or a fresh network of the preset.
+pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Result<SegTrainer> {
+    if args.resume && latest.exists() {
+        let mut t =
+            SegTrainer::resume(latest).with_context(|| format!("resuming {}", latest.display()))?;
+        tracing::info!(
+            "resuming {} at iteration {}",
+            latest.display(),
+            t.iteration()
+        );
+        if let Some(it) = args.iterations {
+            t.set_iterations(it);
+        }
+        return Ok(t);
+    }
+    if args.resume {
+        tracing::info!("--resume: no {} yet, starting fresh", latest.display());
+    }
+    let mut cfg = match init {
+        Some(p) => {
+            ic_seg::checkpoint::read_config(p).with_context(|| format!("{}", p.display()))?
+        }
+        None => SegConfig::preset(&args.preset)?,
+    };
+    if let Some(v) = args.iterations {
+        cfg.train.iterations = v;
+    }
+    if let Some(v) = args.batch_size {
+        cfg.train.batch_size = v;
+    }
+    if let Some(v) = args.learning_rate {
+        cfg.train.learning_rate = v;
+    }
+    let mut t = SegTrainer::new(cfg, args.seed)?;
+    if let Some(p) = init {
+        t.load_weights(p)
+            .with_context(|| format!("{}", p.display()))?;
+        tracing::info!(
+            "initialised from {}; fresh optimiser at iteration 0",
+            p.display()
+        );
+    }
+    Ok(t)
+}
+
+/// `train-seg`: trains into `args.out` on the blob-style folder `args.objects` until the
+/// planned iterations are done, the stop flag is set or the deadline passes.
+pub fn train(args: &TrainArgs, control: RunControl<'_>) -> Result<Outcome> {
+    let train_corpus = corpus(&args.objects, Split::Train, true)?;
+    let val_corpus = corpus(&args.objects, Split::Test, true)?;
+    train_objects(args, None, train_corpus, val_corpus, control)
+}
+
+/// [`train`] on given corpora, optionally starting from the weights of `init`.
+pub fn train_objects(
+    args: &TrainArgs,
+    init: Option<&Path>,
+    train_corpus: Arc<Corpus>,
+    val_corpus: Arc<Corpus>,
+    control: RunControl<'_>,
+) -> Result<Outcome> {
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let latest = args.out.join("latest.safetensors");
+    let trainer = make_trainer(args, &latest, init)?;
+    let cfg = trainer.config().clone();
+    let seed = trainer.seed();
+    tracing::info!("seed {seed}");
+    tracing::info!("config {}", serde_json::to_string_pretty(&cfg)?);
+    tracing::info!(
+        "threads: compute {}, data {}",
+        std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "all".into()),
+        args.data_workers
+    );
+    let room = RoomSampleConfig::default()
+        .with_resolution(cfg.train.render_width, cfg.train.render_height);
+    tracing::info!(
+        "objects: {} train, {} validation",
+        train_corpus.len(),
+        val_corpus.len()
+    );
+    let generator = Arc::new(RoomSampleGenerator::new(train_corpus, room.clone(), seed)?);
+    let val_gen = RoomSampleGenerator::new(val_corpus, room, VALIDATION_SEED)?;
+    let mut renderer = CpuRenderer::new();
+    let val_views: Vec<RoomView> = (0..args.validation_count)
+        .map(|i| val_gen.view_with(&mut renderer, i))
+        .collect::<Result<_, _>>()?;
+    let b = cfg.train.batch_size;
+    let mut task = SegTask {
+        trainer,
+        val_views,
+        validate_every: args.validate_every,
+    };
+    let workers = args.data_workers;
+    crate::run(
+        &mut task,
+        &args.out,
+        args.resume,
+        control,
+        |start, count| {
+            Prefetcher::new(
+                start * b as u64,
+                Some(count * b as u64),
+                workers,
+                2 * b,
+                move |i| generator.view_with(&mut CpuRenderer::new(), i),
+            )
+            .batches(b)
+            .map(|r| r.map_err(anyhow::Error::from))
+        },
+    )
+}
+
+/// The segmentation network's side of [`crate::run`].
+pub struct SegTask {
+    pub trainer: SegTrainer,
+    /// The fixed validation scenes.
+    pub val_views: Vec<RoomView>,
+    pub validate_every: u64,
+}
+
+impl Task for SegTask {
+    type Batch = Vec<RoomView>;
+    const TRAIN_HEADER: &'static str = "iteration,loss,iou,loss_avg,iou_avg,scenes_per_s,elapsed_s";
+    const VAL_HEADER: &'static str = "iteration,iou_median,iou_mean,found_rate,not_found,elapsed_s";
+    const METRIC: &'static str = "IoU";
+
+    fn iteration(&self) -> u64 {
+        self.trainer.iteration()
+    }
+    fn total(&self) -> u64 {
+        self.trainer.config().train.iterations
+    }
+    fn batch_size(&self) -> usize {
+        self.trainer.config().train.batch_size
+    }
+    fn validate_every(&self) -> u64 {
+        self.validate_every
+    }
+
+    fn step(&mut self, views: Vec<RoomView>) -> Result<StepRow> {
+        let cfg = self.trainer.config();
+        let examples: Vec<SegExample> = views
+            .iter()
+            .map(|v| SegExample::new(&v.depth, &v.mask_visib, cfg))
+            .collect::<Result<_, _>>()?;
+        let stats = self.trainer.step(&examples)?;
+        Ok(StepRow {
+            loss: stats.loss as f64,
+            metric: stats.iou,
+            extra: Vec::new(),
+        })
+    }
+
+    fn validate(&mut self, done: u64, elapsed: f64) -> Result<Validation> {
+        let m = evaluate_network(&self.trainer.segmenter(), &self.val_views)?;
+        let row = format!(
+            "{done},{:.4},{:.4},{:.4},{},{elapsed:.1}",
+            m.iou_median, m.iou_mean, m.found_rate, m.not_found
+        );
+        let line = format!(
+            "iteration {done}: validation IoU median {:.3} mean {:.3}, found {:.3}",
+            m.iou_median, m.iou_mean, m.found_rate
+        );
+        Ok(Validation {
+            row,
+            score: m.iou_mean + m.found_rate,
+            line,
+            report: serde_json::to_value(&m)?,
+        })
+    }
+
+    fn save(&mut self, path: &Path) -> Result<()> {
+        Ok(self.trainer.save(path)?)
+    }
+
+    fn save_weights(&self, path: &Path) -> Result<()> {
+        Ok(self.trainer.save_weights(path)?)
+    }
+
+    fn rate(sps: f64) -> String {
+        format!("{sps:.2} scenes/s")
+    }
+}
+
+/// `eval-seg`: the network's masks (and with `--geometric` the geometry-only alternative's)
+/// on room scenes at 640×480; returns the report and writes it (default
+/// `<model>.eval-<split>.json`). RAYON_NUM_THREADS (`--threads`) is the caller's to set.
+pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
+    let mut seg = Segmenter::load(&args.model)?;
+    if let Some(px) = args.depth_refine_px {
+        seg.config_mut().post.depth_refine_px = px;
+    }
+    if let Some(t) = args.pixel_threshold {
+        seg.config_mut().post.pixel_threshold = t;
+    }
+    let (split, holdout) = match args.split.as_str() {
+        "test" => (Split::Test, false),
+        "val" => (Split::Test, true),
+        other => bail!("--split {other:?}: expected test or val"),
+    };
+    let generator = Arc::new(RoomSampleGenerator::new(
+        corpus(&args.objects, split, holdout)?,
+        RoomSampleConfig::default(),
+        args.seed,
+    )?);
+    tracing::info!(
+        "seed {}; {} scenes of the {} split at 640×480",
+        args.seed,
+        args.count,
+        args.split
+    );
+    let views = Prefetcher::new(0, Some(args.count), 1, 4, move |i| {
+        generator.view_with(&mut CpuRenderer::new(), i)
+    });
+    let bar = ProgressBar::new(args.count);
+    let geo_cfg = GeometricConfig::default();
+    let (mut network, mut geometric) = (MaskTally::default(), MaskTally::default());
+    for (i, v) in views.enumerate() {
+        let v = v?;
+        let t = Instant::now();
+        let found = seg.segment(&v.depth, &v.intrinsics).map(|s| s.mask);
+        network.add(&v.mask_visib, t, found)?;
+        if args.geometric {
+            let t = Instant::now();
+            let cfg = GeometricConfig {
+                seed: i as u64,
+                ..geo_cfg.clone()
+            };
+            let found =
+                ic_seg::segment_geometric(&v.depth, &v.intrinsics, v.model_extent, 1.0, &cfg)
+                    .map(|g| g.mask);
+            geometric.add(&v.mask_visib, t, found)?;
+        }
+        bar.set_position(i as u64 + 1);
+        if (i + 1) % 50 == 0 && !crate::interactive() {
+            tracing::info!("{}/{} scenes", i + 1, args.count);
+        }
+    }
+    bar.finish_and_clear();
+    let network_metrics = network.metrics();
+    let mut report = serde_json::json!({
+        "per_scene_iou": network.ious,
+        "model": args.model,
+        "split": args.split,
+        "seed": args.seed,
+        "resolution": [640, 480],
+        "config": seg.config(),
+        "network": network_metrics,
+    });
+    if args.geometric {
+        report["geometric"] = serde_json::to_value(geometric.metrics())?;
+        report["geometric_config"] = serde_json::to_value(&geo_cfg)?;
+        report["per_scene_iou_geometric"] = serde_json::to_value(&geometric.ious)?;
+    }
+    let text = serde_json::to_string_pretty(&report)?;
+    let out = args.out.clone().unwrap_or_else(|| {
+        let mut p = args.model.clone().into_os_string();
+        p.push(format!(".eval-{}.json", args.split));
+        PathBuf::from(p)
+    });
+    crate::write_atomic(&out, text.as_bytes())?;
+    tracing::info!("written {}", out.display());
+    Ok(report)
+}

@@ -1,0 +1,244 @@
+//! The training loop end to end on tiny data (procedural objects, the `tiny` presets, a few
+//! iterations): a resumed run gives the numbers of an uninterrupted one, the CSV continues
+//! without duplicated or missing iterations, and a stop request or a deadline saves a
+//! checkpoint. Seconds each.
+
+use std::path::Path;
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+use std::time::Instant;
+
+use ic_data::{Corpus, CorpusOptions, Split};
+use ic_train::{Ending, RunControl};
+
+fn pose_args(out: &Path, iterations: u64, resume: bool) -> ic_train::pose::TrainArgs {
+    ic_train::pose::TrainArgs {
+        preset: "tiny".into(),
+        head: None,
+        objects: "procedural@3:1".into(),
+        protocol: "paper".into(),
+        init: None,
+        out: out.to_path_buf(),
+        iterations: Some(iterations),
+        seed: 7,
+        resume,
+        threads: None,
+        data_workers: 1,
+        checkpoint_secs: 300,
+        batch_size: None,
+        emb_dims: None,
+        ff_dims: None,
+        k: None,
+        model_points: None,
+        observed_points: None,
+        learning_rate: None,
+        validate_every: Some(2),
+        validation_count: Some(2),
+    }
+}
+
+fn never() -> &'static AtomicBool {
+    static NEVER: AtomicBool = AtomicBool::new(false);
+    &NEVER
+}
+
+fn control(stop: &AtomicBool) -> RunControl<'_> {
+    RunControl {
+        stop,
+        deadline: None,
+        checkpoint_secs: 300,
+    }
+}
+
+/// The CSV rows without the timing columns (`samples_per_s`/`scenes_per_s`, `elapsed_s`) and,
+/// after a resume, without the running averages (they restart with the process).
+fn rows(path: &Path, keep: &[usize]) -> Vec<String> {
+    let text = std::fs::read_to_string(path).unwrap();
+    text.lines()
+        .map(|l| {
+            let cols: Vec<&str> = l.split(',').collect();
+            keep.iter().map(|&i| cols[i]).collect::<Vec<_>>().join(",")
+        })
+        .collect()
+}
+
+fn iterations_of(path: &Path) -> Vec<u64> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').next().unwrap().parse().unwrap())
+        .collect()
+}
+
+/// The same tensors bit for bit and the same metadata (as JSON values: the header's key
+/// order follows a hash map's).
+#[track_caller]
+fn assert_same_checkpoint(a: &Path, b: &Path) {
+    let tensors = |p: &Path| {
+        let mut t: Vec<(String, Vec<u32>)> =
+            candle_core::safetensors::load(p, &candle_core::Device::Cpu)
+                .unwrap()
+                .into_iter()
+                .map(|(k, v)| {
+                    let bits = v.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+                    (k, bits.iter().map(|x| x.to_bits()).collect())
+                })
+                .collect();
+        t.sort();
+        t
+    };
+    let meta = |p: &Path| -> std::collections::BTreeMap<String, serde_json::Value> {
+        ic_nn::checkpoint::read_metadata(p)
+            .unwrap()
+            .into_iter()
+            .map(|(k, v)| (k, serde_json::from_str(&v).unwrap()))
+            .collect()
+    };
+    assert!(
+        tensors(a) == tensors(b),
+        "{} vs {}: tensors",
+        a.display(),
+        b.display()
+    );
+    assert_eq!(meta(a), meta(b), "{} vs {}", a.display(), b.display());
+}
+
+#[test]
+fn a_resumed_pose_run_matches_an_uninterrupted_one_and_its_csv_continues() {
+    let dir = tempfile::tempdir().unwrap();
+    let (straight, split) = (dir.path().join("straight"), dir.path().join("split"));
+    let a = ic_train::pose::train(&pose_args(&straight, 3, false), control(never())).unwrap();
+    assert_eq!((a.ending, a.iteration), (Ending::Finished, 3));
+    let b1 = ic_train::pose::train(&pose_args(&split, 2, false), control(never())).unwrap();
+    assert_eq!((b1.ending, b1.iteration), (Ending::Finished, 2));
+    // A stale row past the checkpoint (a run killed between checkpoints) must go.
+    let csv = split.join("train.csv");
+    let mut text = std::fs::read_to_string(&csv).unwrap();
+    text.push_str("3,9.99999,0.0000,9.99999,0.0000,0.0000,1.000,1.0\n");
+    std::fs::write(&csv, text).unwrap();
+    let b2 = ic_train::pose::train(&pose_args(&split, 3, true), control(never())).unwrap();
+    assert_eq!(
+        (b2.ending, b2.iteration, b2.iterations_run),
+        (Ending::Finished, 3, 1)
+    );
+
+    assert_eq!(iterations_of(&split.join("train.csv")), [1, 2, 3]);
+    assert_eq!(iterations_of(&split.join("val.csv")), [2, 3]);
+    // loss, accuracy, matched fraction: the same numbers to the last digit written.
+    let cols = [0, 1, 2, 5];
+    assert_eq!(
+        rows(&straight.join("train.csv"), &cols),
+        rows(&split.join("train.csv"), &cols)
+    );
+    let val_cols = [0, 1, 2, 3, 4, 5, 6, 7, 9, 10];
+    assert_eq!(
+        rows(&straight.join("val.csv"), &val_cols),
+        rows(&split.join("val.csv"), &val_cols)
+    );
+    // The weights (and Adam's moments, iteration, seed) are identical bit for bit.
+    for file in ["final.safetensors", "latest.safetensors"] {
+        assert_same_checkpoint(&straight.join(file), &split.join(file));
+    }
+    for file in [
+        "data.json",
+        "best.json",
+        "best.safetensors",
+        "symmetries.json",
+    ] {
+        assert!(split.join(file).is_file(), "{file}");
+    }
+    // Already done: nothing runs, nothing changes.
+    let again = ic_train::pose::train(&pose_args(&split, 3, true), control(never())).unwrap();
+    assert_eq!(again.ending, Ending::AlreadyDone);
+    assert_eq!(iterations_of(&split.join("train.csv")), [1, 2, 3]);
+}
+
+#[test]
+fn a_stop_request_or_a_deadline_saves_a_resumable_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    // The stop flag as a signal handler would set it: the run stops after one iteration.
+    let stop = AtomicBool::new(true);
+    let o = ic_train::pose::train(&pose_args(&out, 3, false), control(&stop)).unwrap();
+    assert_eq!((o.ending, o.iteration), (Ending::Interrupted, 1));
+    let latest = out.join("latest.safetensors");
+    let state = ic_train::read_state::<ic_pose::PoseNet>(&latest).unwrap();
+    assert_eq!((state.iteration, state.seed), (1, 7));
+    assert!(!out.join("final.safetensors").exists());
+    assert_eq!(iterations_of(&out.join("train.csv")), [1]);
+    // A deadline already past: one more iteration, then checkpoint and final weights.
+    let past = RunControl {
+        deadline: Some(Instant::now()),
+        ..control(never())
+    };
+    let o = ic_train::pose::train(&pose_args(&out, 3, true), past).unwrap();
+    assert_eq!((o.ending, o.iteration), (Ending::TimeUp, 2));
+    assert_eq!(
+        ic_train::read_state::<ic_pose::PoseNet>(&latest)
+            .unwrap()
+            .iteration,
+        2
+    );
+    assert!(ic_pose::PoseEstimator::load(out.join("final.safetensors")).is_ok());
+    assert_eq!(iterations_of(&out.join("train.csv")), [1, 2]);
+}
+
+fn seg_args(out: &Path, iterations: u64, resume: bool) -> ic_train::seg::TrainArgs {
+    ic_train::seg::TrainArgs {
+        preset: "tiny".into(),
+        objects: "unused".into(),
+        out: out.to_path_buf(),
+        iterations: Some(iterations),
+        seed: 3,
+        resume,
+        threads: None,
+        data_workers: 1,
+        checkpoint_secs: 300,
+        validate_every: 2,
+        validation_count: 2,
+        batch_size: None,
+        learning_rate: None,
+    }
+}
+
+fn seg_run(out: &Path, iterations: u64, resume: bool) -> ic_train::Outcome {
+    let corpus = |split| {
+        let options = CorpusOptions {
+            model_points: 256,
+            ..CorpusOptions::default()
+        };
+        Arc::new(Corpus::procedural(3, split, 5, options).unwrap())
+    };
+    ic_train::seg::train_objects(
+        &seg_args(out, iterations, resume),
+        None,
+        corpus(Split::Train),
+        corpus(Split::Test),
+        control(never()),
+    )
+    .unwrap()
+}
+
+#[test]
+fn a_resumed_segmentation_run_matches_an_uninterrupted_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let (straight, split) = (dir.path().join("straight"), dir.path().join("split"));
+    assert_eq!(seg_run(&straight, 3, false).iteration, 3);
+    assert_eq!(seg_run(&split, 2, false).iteration, 2);
+    let resumed = seg_run(&split, 3, true);
+    assert_eq!(
+        (resumed.ending, resumed.iterations_run),
+        (Ending::Finished, 1)
+    );
+    assert_eq!(iterations_of(&split.join("train.csv")), [1, 2, 3]);
+    let cols = [0, 1, 2];
+    assert_eq!(
+        rows(&straight.join("train.csv"), &cols),
+        rows(&split.join("train.csv"), &cols)
+    );
+    for file in ["final.safetensors", "latest.safetensors"] {
+        assert_same_checkpoint(&straight.join(file), &split.join(file));
+    }
+    assert!(ic_seg::Segmenter::load(&split.join("best.safetensors")).is_ok());
+}
