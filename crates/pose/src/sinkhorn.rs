@@ -8,7 +8,8 @@ use std::sync::{Arc, Mutex};
 use candle_core::{CpuStorage, CustomOp1, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-use crate::fastmath::{exp_approx, has_avx2_fma};
+use ic_nn::ops::fastmath::exp_approx;
+use ic_nn::ops::has_avx2_fma;
 
 /// Builds the augmented, temperature-scaled score matrix Z = S̄ / λ, `[B, M+1, N+1]`.
 fn augmented_scaled(scores: &Tensor, alpha: f32, lambda: f32) -> Result<Tensor> {
@@ -472,7 +473,7 @@ fn dot_generic<const F: bool>(k: &[f32], w: &[f32]) -> f32 {
     let mut acc = [0.0f32; LANES];
     for (a, b) in kc.zip(wc) {
         for l in 0..LANES {
-            acc[l] = crate::fastmath::fmadd::<F>(a[l], b[l], acc[l]);
+            acc[l] = ic_nn::ops::fastmath::fmadd::<F>(a[l], b[l], acc[l]);
         }
     }
     let mut s: f32 = acc.iter().sum();
