@@ -40,6 +40,9 @@ pub fn layer_norm_reference(x: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Res
         .broadcast_add(b)
 }
 
+/// (mean, variance) of each channel, in channel order.
+pub type ChannelMoments = Vec<(f32, f32)>;
+
 /// `LeakyReLU(BN(x))` for `x` `[B, C, L]` (f32 on the CPU) with weight and bias `[C]` and
 /// negative slope `slope` (> 0), as one fused op (forward and backward one pass per channel).
 ///
@@ -52,10 +55,10 @@ pub fn batch_norm_leaky_relu(
     x: &Tensor,
     weight: &Tensor,
     bias: &Tensor,
-    running: Option<Vec<(f32, f32)>>,
+    running: Option<ChannelMoments>,
     eps: f32,
     slope: f32,
-) -> Result<(Tensor, Option<Vec<(f32, f32)>>)> {
+) -> Result<(Tensor, Option<ChannelMoments>)> {
     let training = running.is_none();
     let kept = Arc::new(Mutex::new(None));
     let op = BnLeaky {

@@ -187,6 +187,7 @@ ic_nn::avx2_fma_dispatch! {
 
 ic_nn::avx2_fma_dispatch! {
     /// [`bwd_rows_generic`], with FMA when the CPU has it.
+    #[allow(clippy::too_many_arguments)]
     fn bwd_rows(z: &[f32], u: &[f32], la: &[f32], extra: &[f32], c: &[f32], gv: &[f32], vprev: &[f32], dz: &mut [f32], gu: &mut [f32], colacc: &mut [f32]) = bwd_rows_generic;
 }
 

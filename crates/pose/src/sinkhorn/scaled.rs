@@ -68,6 +68,7 @@ fn scaled_rows_generic<const F: bool>(
 
 ic_nn::avx2_fma_dispatch! {
     /// [`scaled_rows_generic`], with FMA when the CPU has it.
+    #[allow(clippy::too_many_arguments)]
     fn scaled_rows(kern: &[f32], z: &[f32], zmax: &[f32], w: &[f32], add: &[f32], amax: f32, base: &[f32], out: &mut [f32]) = scaled_rows_generic;
 }
 
