@@ -104,7 +104,7 @@ fn fwd_bwd(f: &dyn Fn() -> Tensor) -> candle_core::backprop::GradStore {
 
 fn kernels(c: &mut Criterion) {
     use candle_core::{DType, Device, Module, Var};
-    use ic_pose::attention::{multi_head_attention, multi_head_attention_reference};
+    use ic_nn::ops::attention::{multi_head_attention, multi_head_attention_reference};
     use ic_pose::dgcnn::{neighbour_max, neighbour_max_reference};
     use ic_pose::layers::{Dense, LayerNorm};
     let dev = Device::Cpu;

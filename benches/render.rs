@@ -1,7 +1,8 @@
 //! Rendering throughput (views/s): CPU reference vs wgpu (a GPU, or lavapipe) for a
 //! 10 000-triangle torus at 640×480 and 160×120, single views and batches of 16.
 //!
-//! Run with `cargo xtask bench render` (or `cargo bench -p ic_render --bench render`). The same
+//! Run with `cargo xtask bench render` (or `cargo bench -p ic_render --bench render`; the wgpu
+//! rows need `--features gpu`, without it the CPU renderer alone is measured). The same
 //! baseline as `benches/geometry.rs` (summing 300 000 points) is measured in the run, so figures
 //! can be reported as ratios on these shared, noisy machines.
 
@@ -11,7 +12,7 @@ use std::sync::Arc;
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use ic_geometry::glam::{DVec3, Vec3};
 use ic_geometry::{Intrinsics, Pose, ViewSphere};
-use ic_render::{Camera, CpuRenderer, Renderer, Scene, WgpuRenderer};
+use ic_render::{Camera, CpuRenderer, Renderer, Scene};
 use rand::SeedableRng;
 
 fn cameras(width: u32, height: u32, n: usize) -> Vec<Camera> {
@@ -34,7 +35,8 @@ fn bench(c: &mut Criterion) {
     let mesh = Arc::new(ic_geometry::shapes::torus(0.75, 0.25, 100, 50).expect("valid torus"));
     assert_eq!(mesh.triangles.len(), 10_000);
     let scene = Scene::single(mesh, Pose::IDENTITY, 1);
-    let mut gpu = match WgpuRenderer::new() {
+    #[cfg(feature = "gpu")]
+    let mut gpu = match ic_render::WgpuRenderer::new() {
         Ok(r) => {
             eprintln!("wgpu adapter: {}", r.name());
             Some(r)
@@ -43,6 +45,11 @@ fn bench(c: &mut Criterion) {
             eprintln!("skipping wgpu benchmarks: {e}");
             None
         }
+    };
+    #[cfg(not(feature = "gpu"))]
+    let mut gpu: Option<CpuRenderer> = {
+        eprintln!("skipping wgpu benchmarks: ic_render built without the `gpu` feature");
+        None
     };
     let mut cpu = CpuRenderer::new();
     let mut group = c.benchmark_group("render_10k_triangles");

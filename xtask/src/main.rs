@@ -187,8 +187,29 @@ fn cargo(args: &[&str]) -> Result<()> {
 }
 
 fn test() -> Result<()> {
+    // The gates first: formatting, then clippy on every target with warnings as errors (the
+    // workspace lints of Cargo.toml included).
+    cargo(&["fmt", "--all", "--check"])?;
+    cargo(&[
+        "clippy",
+        "--workspace",
+        "--all-targets",
+        "--",
+        "-D",
+        "warnings",
+    ])?;
     cargo(&["test", "--workspace", "--all-targets"])?;
     cargo(&["test", "--workspace", "--doc"])?;
+    // The wgpu backend is off by default (ic_render's `gpu` feature): its tests (which fail
+    // without an adapter; CI has Mesa's lavapipe) run here with the feature on.
+    cargo(&[
+        "test",
+        "-p",
+        "ic_render",
+        "--features",
+        "gpu",
+        "--all-targets",
+    ])?;
     python_tests()?;
     // The small accuracy/speed bench (about 1.5 min on 2 cores), so `cargo xtask bench` and
     // `incontext eval --cases` cannot rot; writes under target/bench-quick/ only.

@@ -43,12 +43,61 @@ pub fn save(
             source,
         })?;
     }
-    ic_geometry::io::write_atomic_with(path, |w| w.write_all(&bytes), |e| e).map_err(|source| {
-        CheckpointError::Io {
-            path: path.to_path_buf(),
-            source,
-        }
+    write_atomic(path, &bytes).map_err(|source| CheckpointError::Io {
+        path: path.to_path_buf(),
+        source,
     })
+}
+
+/// Writes `bytes` to a temporary file in `path`'s folder, syncs it and renames it over `path`,
+/// so a reader sees the old file or the whole new one, never part of it; the temporary file is
+/// removed on any failure (and on unwinding). Like `ic_geometry::io::write_atomic_with`, a
+/// `path` that is a link, device, FIFO, socket or folder is refused
+/// ([`std::io::ErrorKind::InvalidInput`]), checked before writing and again before the rename.
+fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let file_name = path.file_name().ok_or_else(|| {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "the output path has no file name",
+        )
+    })?;
+    check_replaceable(path)?;
+    let mut prefix = std::ffi::OsString::from(".");
+    prefix.push(file_name);
+    prefix.push(".");
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(&prefix).suffix(".tmp");
+    // The mode of a file created the usual way (0666 less the umask), not tempfile's 0600.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        builder.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let mut tmp = builder.tempfile_in(dir)?;
+    {
+        let mut out = std::io::BufWriter::new(tmp.as_file_mut());
+        out.write_all(bytes)?;
+        out.flush()?;
+    }
+    tmp.as_file().sync_all()?;
+    check_replaceable(path)?;
+    tmp.persist(path).map_err(|e| e.error)?;
+    Ok(())
+}
+
+/// An error unless `path` is absent or a regular file (what a rename may replace).
+fn check_replaceable(path: &Path) -> std::io::Result<()> {
+    match std::fs::symlink_metadata(path) {
+        Ok(meta) if !meta.file_type().is_file() => Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "refusing to replace a link, device, FIFO, socket or folder with a file",
+        )),
+        _ => Ok(()),
+    }
 }
 
 /// The string metadata of a safetensors file (reads only its header).
@@ -163,5 +212,30 @@ mod tests {
         let e = read_metadata(&path).unwrap_err();
         assert!(matches!(e, CheckpointError::Format { .. }));
         assert!(e.to_string().contains("bad.safetensors"), "{e}");
+    }
+
+    #[test]
+    fn save_refuses_to_replace_a_folder_and_leaves_no_temporary_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("ckpt.safetensors");
+        std::fs::create_dir(&target).unwrap();
+        let err = save(&target, &[], HashMap::new()).unwrap_err();
+        assert!(err.to_string().contains("ckpt.safetensors"), "{err}");
+        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(names.len(), 1, "only the folder: {names:?}");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn saved_file_has_the_mode_of_an_ordinary_new_file() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let plain = dir.path().join("plain");
+        std::fs::write(&plain, b"x").unwrap();
+        let path = dir.path().join("ckpt.safetensors");
+        save(&path, &[], HashMap::new()).unwrap();
+        let mode = |p: &Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode(&path), mode(&plain));
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
     }
 }

@@ -8,7 +8,9 @@
 //! - [`norm::BatchNorm1`] / [`norm::BatchNorm2`]: batch normalisation laid out for fast
 //!   last-dimension reductions, running statistics stored beside the weights;
 //! - [`checkpoint`]: atomic safetensors writing with string metadata, and a header-only reader;
-//! - [`cpu`]: helpers of the fused CPU ops (storage slices, tensor values).
+//! - [`ops`]: the fused CPU kernels of both networks (attention, dense, layer and batch norm,
+//!   softmax, the EdgeConv gather-max, the `gemm` wrapper and SIMD micro-kernels), each beside
+//!   its tensor-op reference.
 //!
 //! ```
 //! use candle_core::{Device, Tensor};
@@ -23,8 +25,8 @@
 
 pub mod adam;
 pub mod checkpoint;
-pub mod cpu;
 pub mod norm;
+pub mod ops;
 mod params;
 
 pub use checkpoint::CheckpointError;

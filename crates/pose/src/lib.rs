@@ -29,21 +29,19 @@
 //! depends on no renderer, so an inference-only user of [`PoseEstimator`] compiles none.
 //!
 //! Implementation notes (measured with candle 0.11 on CPU): on the CPU with f32 the hot
-//! layers are fused candle custom ops with hand-written backward passes — attention
-//! ([`attention`]), Dense and LayerNorm ([`layers`]), the EdgeConv gather-max and BN +
-//! LeakyReLU ([`dgcnn`]), Sinkhorn ([`sinkhorn`]) — each beside a tensor-op version that other
+//! layers are fused candle custom ops with hand-written backward passes — attention, Dense,
+//! LayerNorm, the EdgeConv gather-max and BN + LeakyReLU (all in [`ic_nn::ops`]), Sinkhorn
+//! ([`sinkhorn`]) — each beside a tensor-op version that other
 //! devices use and the tests compare against (candle-nn's own fused LayerNorm and softmax
 //! have no backward); the k-NN graph is computed in plain Rust ([`knn`]); DGCNN runs
 //! channel-first with the per-point products before the neighbour gather. Call
 //! [`tune_candle_cpu_pool`] first thing in `main`.
 
-pub mod attention;
 pub mod checkpoint;
 pub mod config;
 pub mod dgcnn;
 mod error;
 pub mod estimator;
-pub mod fastmath;
 pub mod knn;
 pub mod layers;
 pub mod network;
@@ -51,34 +49,13 @@ pub mod recover;
 pub mod sinkhorn;
 pub mod transformer;
 
-/// Environment settings for candle's own CPU thread pool that suit the fused kernels.
-///
-/// candle 0.11 runs its element-wise ops on a "barrier pool" whose workers spin for 25 000
-/// rounds after every op before they sleep. The fused kernels here run on rayon's threads, so
-/// on a 2-core machine a spinning candle worker takes a core from them: measured with
-/// `benches/pose.rs` on 2 threads, a spin limit of 200 rounds cut the `cpu` training step from
-/// ≈ 0.55 s to ≈ 0.42 s and the 1024×768 forward from ≈ 195 to ≈ 160 ms.
-pub const CANDLE_CPU_ENV: [(&str, &str); 1] = [("CANDLE_BARRIER_POOL_SPIN_LIMIT", "200")];
-
-/// Sets each of [`CANDLE_CPU_ENV`] that the environment does not already set.
-///
-/// # Safety
-/// Writes the process environment: call it first thing in `main`, before any other thread
-/// exists (candle reads the setting when its pool starts).
-pub unsafe fn tune_candle_cpu_pool() {
-    for (key, value) in CANDLE_CPU_ENV {
-        if std::env::var_os(key).is_none() {
-            // SAFETY: the caller guarantees that no other thread runs yet.
-            unsafe { std::env::set_var(key, value) };
-        }
-    }
-}
-
+// The candle pool settings belong to the fused kernels, which live in `ic_nn::ops`.
 pub use config::{Head, NetConfig, OtConfig, OtLoss, PoseConfig, TrainConfig};
 pub use error::{PoseError, Result};
 pub use estimator::{CopyEstimate, PoseEstimate, PoseEstimator, SweepOptions};
 /// The ground-truth assignment M̄ the loss reads (defined in `ic_geometry`, built by `ic_data`).
 pub use ic_geometry::Assignment;
+pub use ic_nn::ops::{CANDLE_CPU_ENV, tune_candle_cpu_pool};
 pub use ic_nn::{adam, seeded_var_builder};
 pub use network::{
     HeadOutput, Match, PairBatch, PoseNet, SweepBatch, correspondence_accuracy,

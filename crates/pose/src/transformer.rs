@@ -5,14 +5,14 @@
 //! Solomon, ICCV 2019 (<https://arxiv.org/abs/1905.03304>, Sec. 4.2: fx = θx + φ(θx, θy),
 //! fy = θy + φ(θy, θx)); the paper (Dang et al., CVPR 2021) uses one block, 4 heads, ff 1024.
 //! Point-major layout `[B, P, d]`; LayerNorm is written from tensor ops, the attention itself
-//! is the fused kernel of [`crate::attention`].
+//! is the fused kernel of [`ic_nn::ops::attention`].
 
 use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
-use crate::attention::multi_head_attention;
 use crate::config::NetConfig;
 use crate::layers::{Dense, LayerNorm};
+use ic_nn::ops::attention::multi_head_attention;
 
 /// Multi-head scaled dot-product attention.
 #[derive(Clone, Debug)]

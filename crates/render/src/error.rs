@@ -5,7 +5,8 @@ use std::path::PathBuf;
 /// Rendering or scene assembly failed.
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {
-    /// `WGPU_BACKEND` (or [`crate::WgpuOptions::backends`]) named a backend wgpu does not know.
+    /// `WGPU_BACKEND` (or `WgpuOptions::backends`, feature `gpu`) named a backend wgpu does not
+    /// know.
     #[error(
         "invalid wgpu backend list {value:?}: unknown name {name:?} (expected a comma-separated \
          list of vulkan|vk, gl|gles|opengl, metal|mtl, dx12|d3d12)"

@@ -3,9 +3,10 @@
 //! Renders depth maps and instance-id maps of posed triangle meshes, headless, on two backends
 //! behind one [`Renderer`] trait:
 //!
-//! - [`WgpuRenderer`]: wgpu without a window (a real GPU when present, else Mesa's software
-//!   Vulkan, lavapipe, from the Debian package `mesa-vulkan-drivers`); honours and validates
-//!   `WGPU_BACKEND`; reversed infinite-far depth; batches of views in one submission.
+//! - `WgpuRenderer` (cargo feature `gpu`, off by default): wgpu without a window (a real GPU
+//!   when present, else Mesa's software Vulkan, lavapipe, from the Debian package
+//!   `mesa-vulkan-drivers`); honours and validates `WGPU_BACKEND`; reversed infinite-far depth;
+//!   batches of views in one submission.
 //! - [`CpuRenderer`]: a rayon z-buffer rasteriser with f64 triangle set-up, the reference the
 //!   GPU path is tested against and the default without a GPU ([`default_renderer`]).
 //!
@@ -54,6 +55,7 @@
 mod cpu;
 mod debug;
 mod error;
+#[cfg(feature = "gpu")]
 mod gpu;
 /// Depth, mask and instance-id images on disk (PNG, EXR), written atomically.
 pub mod io;
@@ -68,6 +70,7 @@ pub use debug::{
     debug_rgb, depth_colours, is_mask_edge, turbo_like, write_debug_png, write_rgb_png,
 };
 pub use error::{ImageIoError, RenderError};
+#[cfg(feature = "gpu")]
 pub use gpu::{WgpuOptions, WgpuRenderer, parse_backends};
 pub use renderer::{
     Camera, DEFAULT_NEAR, MAX_INSTANCE_ID, Renderer, Rendering, Scene, SceneObject,
@@ -81,8 +84,10 @@ pub use sensor::{
     SensorConfig,
 };
 
-/// The wgpu renderer when an adapter exists, else the CPU renderer (the reason is logged with
-/// `tracing`). An invalid `WGPU_BACKEND` is still an error.
+/// With the `gpu` feature, the wgpu renderer when an adapter exists, else the CPU renderer (the
+/// reason is logged with `tracing`); an invalid `WGPU_BACKEND` is still an error. Without the
+/// feature, the CPU renderer.
+#[cfg(feature = "gpu")]
 pub fn default_renderer() -> Result<Box<dyn Renderer + Send>, RenderError> {
     match WgpuRenderer::new() {
         Ok(r) => Ok(Box::new(r)),
@@ -92,4 +97,11 @@ pub fn default_renderer() -> Result<Box<dyn Renderer + Send>, RenderError> {
             Ok(Box::new(CpuRenderer::new()))
         }
     }
+}
+
+/// With the `gpu` feature, the wgpu renderer when an adapter exists, else the CPU renderer.
+/// Without the feature (this build), the CPU renderer.
+#[cfg(not(feature = "gpu"))]
+pub fn default_renderer() -> Result<Box<dyn Renderer + Send>, RenderError> {
+    Ok(Box::new(CpuRenderer::new()))
 }

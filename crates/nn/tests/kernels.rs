@@ -1,11 +1,12 @@
-//! The fused CPU kernels against their tensor-op references, in value and gradient: the
-//! multi-head attention (`ic_pose::attention`) over shapes that exercise several query blocks,
-//! a ragged last block, one key and more heads than pairs; the EdgeConv gather-max
-//! (`ic_pose::dgcnn::neighbour_max`).
+//! The fused CPU kernels of `ic_nn::ops` against their tensor-op references, in value and
+//! gradient: the multi-head attention over shapes that exercise several query blocks, a ragged
+//! last block, one key and more heads than pairs; the EdgeConv gather-max; layer norm; the
+//! dense layer; the 1×1 channel convolution. (Batch norm + LeakyReLU and the micro-kernels are
+//! tested beside their code.)
 
 use candle_core::{Device, Tensor, Var};
-use ic_pose::attention::{multi_head_attention, multi_head_attention_reference};
-use ic_pose::dgcnn::{neighbour_max, neighbour_max_reference};
+use ic_nn::ops::attention::{multi_head_attention, multi_head_attention_reference};
+use ic_nn::ops::gather::{neighbour_max, neighbour_max_reference};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -129,28 +130,21 @@ fn neighbour_max_rejects_out_of_range_neighbours() {
     assert!(neighbour_max(&a, &graph, 1).is_err());
 }
 
-/// A layer built in a fresh VarMap with every variable set to random values.
-fn random_layer<T>(
-    build: impl Fn(candle_nn::VarBuilder) -> candle_core::Result<T>,
-) -> (T, Vec<(String, Var)>) {
-    let varmap = candle_nn::VarMap::new();
-    let vb = candle_nn::VarBuilder::from_varmap(&varmap, candle_core::DType::F32, &Device::Cpu);
-    let layer = build(vb).unwrap();
-    let mut vars: Vec<(String, Var)> = varmap
-        .data()
-        .lock()
-        .unwrap()
+/// Variables of the given shapes set to random values, seeded 100, 101, … in the order given
+/// (the order of their names, as the layers' variables were drawn when these tests built the
+/// layers of `ic_pose`: "bias" before "weight").
+fn random_vars(shapes: &[(&str, &[usize])]) -> Vec<(String, Var)> {
+    shapes
         .iter()
-        .map(|(k, v)| (k.clone(), v.clone()))
-        .collect();
-    vars.sort_by(|a, b| a.0.cmp(&b.0));
-    for (i, (_, v)) in vars.iter().enumerate() {
-        let dims = v.dims().to_vec();
-        let n: usize = dims.iter().product();
-        let r = randn((1, 1, n), 0.5, 100 + i as u64).reshape(dims).unwrap();
-        v.set(&r).unwrap();
-    }
-    (layer, vars)
+        .enumerate()
+        .map(|(i, (name, dims))| {
+            let n: usize = dims.iter().product();
+            let r = randn((1, 1, n), 0.5, 100 + i as u64)
+                .reshape(dims.to_vec())
+                .unwrap();
+            (name.to_string(), Var::from_tensor(&r).unwrap())
+        })
+        .collect()
 }
 
 /// Output and gradients (input first, then every variable) of a weighted sum of `f(x)`.
@@ -175,12 +169,23 @@ fn value_and_grads(
 
 #[test]
 fn fused_layer_norm_matches_tensor_ops() {
-    use candle_core::Module;
-    let (ln, vars) = random_layer(|vb| ic_pose::layers::LayerNorm::new(vb, 24));
+    use ic_nn::ops::norm::{layer_norm, layer_norm_reference};
+    let vars = random_vars(&[("bias", &[24]), ("weight", &[24])]);
+    let (bias, weight) = (vars[0].1.as_tensor().clone(), vars[1].1.as_tensor().clone());
     let x = Var::from_tensor(&randn((3, 70, 24), 2.0, 11)).unwrap();
     let w = randn((3, 70, 24), 1.0, 12);
-    let fused = value_and_grads(|t| ln.forward(t).unwrap(), &x, &vars, &w);
-    let reference = value_and_grads(|t| ln.forward_reference(t).unwrap(), &x, &vars, &w);
+    let fused = value_and_grads(
+        |t| layer_norm(t, &weight, &bias, 1e-5).unwrap(),
+        &x,
+        &vars,
+        &w,
+    );
+    let reference = value_and_grads(
+        |t| layer_norm_reference(t, &weight, &bias, 1e-5).unwrap(),
+        &x,
+        &vars,
+        &w,
+    );
     for (i, (a, b)) in fused.iter().zip(&reference).enumerate() {
         assert!(max_rel_diff(a, b) < 1e-4, "layer norm output/gradient {i}");
     }
@@ -188,25 +193,17 @@ fn fused_layer_norm_matches_tensor_ops() {
 
 #[test]
 fn fused_dense_matches_matmul_plus_bias() {
-    use candle_core::Module;
-    let (dense, vars) = random_layer(|vb| ic_pose::layers::Dense::new(vb, 20, 36, true));
-    let weight = vars
-        .iter()
-        .find(|v| v.0 == "weight")
-        .unwrap()
-        .1
-        .as_tensor()
-        .clone();
-    let bias = vars
-        .iter()
-        .find(|v| v.0 == "bias")
-        .unwrap()
-        .1
-        .as_tensor()
-        .clone();
+    use ic_nn::ops::dense::dense;
+    let vars = random_vars(&[("bias", &[36]), ("weight", &[36, 20])]);
+    let (bias, weight) = (vars[0].1.as_tensor().clone(), vars[1].1.as_tensor().clone());
     let x = Var::from_tensor(&randn((2, 45, 20), 1.0, 13)).unwrap();
     let w = randn((2, 45, 36), 1.0, 14);
-    let fused = value_and_grads(|t| dense.forward(t).unwrap(), &x, &vars, &w);
+    let fused = value_and_grads(
+        |t| dense(t, &weight, Some(&bias), false).unwrap(),
+        &x,
+        &vars,
+        &w,
+    );
     let reference = value_and_grads(
         |t| {
             t.broadcast_matmul(&weight.t().unwrap())
@@ -224,15 +221,42 @@ fn fused_dense_matches_matmul_plus_bias() {
 }
 
 #[test]
+fn fused_dense_relu_matches_tensor_ops() {
+    use ic_nn::ops::dense::{dense, dense_reference};
+    let vars = random_vars(&[("bias", &[24]), ("weight", &[24, 16])]);
+    let (bias, weight) = (vars[0].1.as_tensor().clone(), vars[1].1.as_tensor().clone());
+    let x = Var::from_tensor(&randn((3, 30, 16), 1.0, 15)).unwrap();
+    let w = randn((3, 30, 24), 1.0, 16);
+    let fused = value_and_grads(
+        |t| dense(t, &weight, Some(&bias), true).unwrap(),
+        &x,
+        &vars,
+        &w,
+    );
+    let reference = value_and_grads(
+        |t| dense_reference(t, &weight, Some(&bias), true).unwrap(),
+        &x,
+        &vars,
+        &w,
+    );
+    for (i, (a, b)) in fused.iter().zip(&reference).enumerate() {
+        assert!(
+            max_rel_diff(a, b) < 1e-5,
+            "dense + ReLU output/gradient {i}"
+        );
+    }
+}
+
+#[test]
 fn fused_channel_linear_matches_broadcast_matmul() {
     let wv = Var::from_tensor(&randn((1, 12, 7), 1.0, 21).reshape((12, 7)).unwrap()).unwrap();
     let x = Var::from_tensor(&randn((3, 7, 50), 1.0, 22)).unwrap();
     let g = randn((3, 12, 50), 1.0, 23);
     let run = |fused: bool| {
         let y = if fused {
-            ic_pose::layers::channel_linear(&wv, &x).unwrap()
+            ic_nn::ops::dense::channel_linear(&wv, &x).unwrap()
         } else {
-            wv.broadcast_left(3).unwrap().matmul(&x).unwrap()
+            ic_nn::ops::dense::channel_linear_reference(&wv, &x).unwrap()
         };
         let grads = (&y * &g).unwrap().sum_all().unwrap().backward().unwrap();
         vec![

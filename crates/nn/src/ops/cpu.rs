@@ -1,4 +1,4 @@
-//! Small helpers for the fused CPU ops (candle `CustomOp`s) of `ic_nn` and `ic_pose`.
+//! Small helpers for the fused CPU ops (candle `CustomOp`s) of `ic_nn::ops` and `ic_pose`.
 
 use candle_core::{CpuStorage, DType, Layout, Result, Tensor};
 

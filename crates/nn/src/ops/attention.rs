@@ -13,14 +13,13 @@
 
 use std::sync::{Arc, Mutex};
 
-use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp3, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-use crate::fastmath::{
-    MatRef, dot_rows_panels, exp_approx, has_avx2_fma, matmul, pack_panels_view, rows_times_matrix,
-};
-use crate::layers::softmax_last;
-use ic_nn::cpu::{f32_slice, to_f32_vec};
+use super::cpu::{all_cpu_f32, f32_slice, to_f32_vec};
+use super::fastmath::{Panels, dot_rows_panels, exp_approx, matmul, rows_times_matrix};
+use super::softmax::softmax_last;
+use super::{MatMut, MatRef};
 
 fn check_args(
     q: &Tensor,
@@ -74,8 +73,7 @@ pub fn multi_head_attention_reference(
 /// elsewhere [`multi_head_attention_reference`]. The two agree to f32 rounding (tested).
 pub fn multi_head_attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize) -> Result<Tensor> {
     check_args(q, k, v, heads)?;
-    let cpu_f32 = |t: &Tensor| t.device().is_cpu() && t.dtype() == DType::F32;
-    if !(cpu_f32(q) && cpu_f32(k) && cpu_f32(v)) {
+    if !all_cpu_f32(&[q, k, v]) {
         return multi_head_attention_reference(q, k, v, heads);
     }
     q.contiguous()?.apply_op3(
@@ -168,26 +166,9 @@ fn softmax_rows_generic<const F: bool>(
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn softmax_rows_avx2(
-    s: &mut [f32],
-    n: usize,
-    lse: &mut [f32],
-    inv: &mut [f32],
-    recompute: bool,
-) {
-    softmax_rows_generic::<true>(s, n, lse, inv, recompute)
-}
-
-fn softmax_rows(s: &mut [f32], n: usize, lse: &mut [f32], inv: &mut [f32], recompute: bool) {
-    #[cfg(target_arch = "x86_64")]
-    if has_avx2_fma() {
-        // SAFETY: the CPU supports AVX2 and FMA (checked at run time).
-        unsafe { softmax_rows_avx2(s, n, lse, inv, recompute) };
-        return;
-    }
-    softmax_rows_generic::<false>(s, n, lse, inv, recompute)
+crate::avx2_fma_dispatch! {
+    /// [`softmax_rows_generic`] with FMA when the CPU has it.
+    fn softmax_rows(s: &mut [f32], n: usize, lse: &mut [f32], inv: &mut [f32], recompute: bool) = softmax_rows_generic;
 }
 
 /// `ds = p ∘ (dp − D_row)` in place in `dp` (rows × n).
@@ -200,17 +181,15 @@ fn softmax_grad_rows(p: &[f32], dp: &mut [f32], n: usize, dsum: &[f32]) {
 }
 
 /// The products of one head with a point-major `[n, dh]` matrix `M` (`K` or `V`), by the
-/// micro-kernels of [`crate::fastmath`] when the head width is a multiple of 8 (the presets:
+/// micro-kernels of [`super::fastmath`] when the head width is a multiple of 8 (the presets:
 /// 32, 128), by the general GEMM otherwise.
 struct HeadProducts<'a> {
     /// `M` packed for [`dot_rows_panels`] (products `A·Mᵀ`), when the kernels apply.
-    panels: Option<Vec<f32>>,
+    panels: Option<Panels>,
     /// `Mᵀ` packed likewise (products `A·M`), when the kernels apply and it was asked for.
-    panels_t: Option<Vec<f32>>,
-    rows: &'a [f32],
-    n: usize,
-    dh: usize,
-    d: usize,
+    panels_t: Option<Panels>,
+    /// `M`: `[n, dh]` with row stride `d`.
+    m: MatRef<'a>,
 }
 
 impl<'a> HeadProducts<'a> {
@@ -218,55 +197,45 @@ impl<'a> HeadProducts<'a> {
     /// `times` say which of the two products will be used.
     fn new(rows: &'a [f32], n: usize, dh: usize, d: usize, dot: bool, times: bool) -> Self {
         let kernels = dh % 8 == 0;
-        let view = MatRef::rows(rows, n, dh, d);
-        let pack = |v: MatRef| {
-            let mut p = Vec::new();
-            pack_panels_view(v, &mut p);
-            p
-        };
+        let m = MatRef::new(rows, n, dh, d);
         HeadProducts {
-            panels: (kernels && dot).then(|| pack(view)),
-            panels_t: (kernels && times).then(|| pack(view.t())),
-            rows,
-            n,
-            dh,
-            d,
+            panels: (kernels && dot).then(|| Panels::pack(m)),
+            panels_t: (kernels && times).then(|| Panels::pack(m.t())),
+            m,
         }
     }
 
-    /// `dst[i][j] = Σ_c a[i][c]·M[j][c]` for the `r` rows of `a` (row stride `d`); `dst` is
-    /// `[r, n]`.
-    fn dot(&self, a: &[f32], r: usize, dst: &mut [f32]) {
-        let (n, dh, d) = (self.n, self.dh, self.d);
+    /// `dst[i][j] = Σ_c a[i][c]·M[j][c]` for `a` `[r, dh]`; `dst` is `[r, n]`.
+    fn dot(&self, a: MatRef, dst: &mut [f32]) {
+        let (r, n) = (a.rows(), self.m.rows());
+        let dst = MatMut::new(dst, r, n, n);
         match &self.panels {
-            Some(p) => dot_rows_panels(a, r, dh, d, p, n, dst, n),
-            None => matmul(
-                MatRef::rows(a, r, dh, d),
-                MatRef::rows(self.rows, n, dh, d).t(),
-                dst,
-                n,
-                false,
-            ),
+            Some(p) => dot_rows_panels(a, p, dst),
+            None => matmul(a, self.m.t(), dst, false),
         }
     }
 
-    /// `dst[i][c] = Σ_j a[i][j]·M[j][c]` for the `r` rows of `a` (`[r, n]`, contiguous);
-    /// `dst` is `[r, dh]`.
-    fn times(&self, a: &[f32], r: usize, dst: &mut [f32]) {
-        let (n, dh, d) = (self.n, self.dh, self.d);
+    /// `dst[i][c] = Σ_j a[i][j]·M[j][c]` for `a` `[r, n]`; `dst` is `[r, dh]`.
+    fn times(&self, a: MatRef, dst: &mut [f32]) {
         match &self.panels_t {
-            Some(p) => dot_rows_panels(a, r, n, n, p, dh, dst, dh),
-            None => times_rows(MatRef::rows(a, r, n, n), self.rows, dh, d, dst, false),
+            Some(p) => {
+                let (r, dh) = (a.rows(), self.m.cols());
+                dot_rows_panels(a, p, MatMut::new(dst, r, dh, dh))
+            }
+            None => times_rows(a, self.m, dst, false),
         }
     }
 }
 
-/// `dst (=|+=) l·m` with `m` `[inner, dh]` point-major (row stride `d`) and `dst` `[·, dh]`.
-fn times_rows(l: MatRef, m: &[f32], dh: usize, d: usize, dst: &mut [f32], accumulate: bool) {
+/// `dst (=|+=) l·m` with `m` `[inner, dh]` (row-major, any row stride) and `dst` `[·, dh]`
+/// contiguous.
+fn times_rows(l: MatRef, m: MatRef, dst: &mut [f32], accumulate: bool) {
+    let dh = m.cols();
+    let dst = MatMut::new(dst, l.rows(), dh, dh);
     if dh % 8 == 0 {
-        rows_times_matrix(l, m, dh, d, dst, dh, accumulate)
+        rows_times_matrix(l, m, dst, accumulate)
     } else {
-        matmul(l, MatRef::rows(m, l.cols, dh, d), dst, dh, accumulate)
+        matmul(l, m, dst, accumulate)
     }
 }
 
@@ -291,10 +260,10 @@ fn forward_head(
     for r0 in (0..pq).step_by(br) {
         let r = br.min(pq - r0);
         let s = &mut s[..r * pk];
-        keys.dot(&q[r0 * d + off..], r, s);
+        keys.dot(MatRef::new(&q[r0 * d + off..], r, dh, d), s);
         softmax_rows(s, pk, &mut lse[r0..r0 + r], &mut inv[..r], false);
         let o = &mut out[r0 * dh..(r0 + r) * dh];
-        values.times(s, r, o);
+        values.times(MatRef::new(s, r, pk, pk), o);
         for (row, &f) in o.chunks_exact_mut(dh).zip(&inv[..r]) {
             row.iter_mut().for_each(|x| *x *= f);
         }
@@ -331,13 +300,14 @@ fn backward_head(
         let (p, dp) = (&mut p[..r * pk], &mut dp[..r * pk]);
         let (qb, gb) = (&q[r0 * d + off..], &g[r0 * d + off..]);
         // P = exp(Q·Kᵀ − lse).
-        keys.dot(qb, r, p);
+        keys.dot(MatRef::new(qb, r, dh, d), p);
         lse_blk[..r].copy_from_slice(&lse[r0..r0 + r]);
         softmax_rows(p, pk, &mut lse_blk[..r], &mut [], true);
         // dV += Pᵀ·dO.
-        times_rows(MatRef::rows(p, r, pk, pk).t(), gb, dh, d, dv, r0 > 0);
+        let gm = MatRef::new(gb, r, dh, d);
+        times_rows(MatRef::new(p, r, pk, pk).t(), gm, dv, r0 > 0);
         // dP = dO·Vᵀ;  D_i = Σ_c dO_ic O_ic;  dS = P ∘ (dP − D).
-        values.dot(gb, r, dp);
+        values.dot(gm, dp);
         for (i, ds) in dsum[..r].iter_mut().enumerate() {
             let row = (r0 + i) * d + off;
             *ds = g[row..row + dh]
@@ -347,10 +317,10 @@ fn backward_head(
                 .sum();
         }
         softmax_grad_rows(p, dp, pk, &dsum[..r]);
-        let dsm = MatRef::rows(dp, r, pk, pk);
+        let dsm = MatRef::new(dp, r, pk, pk);
         // dQ = dS·K;  dK += dSᵀ·Q.
-        keys.times(dp, r, &mut dq[r0 * dh..(r0 + r) * dh]);
-        times_rows(dsm.t(), qb, dh, d, dk, r0 > 0);
+        keys.times(dsm, &mut dq[r0 * dh..(r0 + r) * dh]);
+        times_rows(dsm.t(), MatRef::new(qb, r, dh, d), dk, r0 > 0);
     }
 }
 
