@@ -334,7 +334,6 @@ fn train_pose(a: &PoseTrainArgs, seed: u64) -> Result<Value> {
         ));
     }
     let corpus = user_corpus(&c.objects)?;
-    drop(corpus);
     prepare_out(c)?;
     let start = start_from(
         c,
@@ -380,8 +379,10 @@ fn train_pose(a: &PoseTrainArgs, seed: u64) -> Result<Value> {
         validation_count: Some(c.validation_count),
     };
     let objects = ic_train::ObjectsSpec::every_mesh_of(&c.objects);
+    // Every mesh trains and validates: one corpus, loaded (and checked) once.
     let outcome =
-        ic_train::pose::train_objects(&args, &objects, control(c)).map_err(train_error)?;
+        ic_train::pose::train_corpora(&args, &objects, corpus.clone(), corpus, control(c))
+            .map_err(train_error)?;
     Ok(report(
         "pose",
         c,

@@ -382,6 +382,20 @@ pub fn train_objects(
     objects: &ObjectsSpec,
     control: RunControl<'_>,
 ) -> Result<Outcome> {
+    let train_corpus = open_objects(objects, Split::Train)?;
+    let val_corpus = open_objects(objects, Split::Val)?;
+    train_corpora(args, objects, train_corpus, val_corpus, control)
+}
+
+/// [`train_objects`] with the corpora already open (they may be one and the same); `objects`
+/// describes them in `data.json`.
+pub fn train_corpora(
+    args: &TrainArgs,
+    objects: &ObjectsSpec,
+    train_corpus: Arc<Corpus>,
+    val_corpus: Arc<Corpus>,
+    control: RunControl<'_>,
+) -> Result<Outcome> {
     let protocol: SamplingProtocol = args.protocol.parse()?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
@@ -397,8 +411,6 @@ pub fn train_objects(
         args.data_workers
     );
 
-    let train_corpus = open_objects(objects, Split::Train)?;
-    let val_corpus = open_objects(objects, Split::Val)?;
     let scfg = sample_config(&cfg, protocol);
     let data = serde_json::json!({
         "protocol": protocol.as_str(),
