@@ -150,6 +150,25 @@ impl<N: Network> Trainer<N> {
         Ok(t)
     }
 
+    /// [`Trainer::resume`] for a training command: logs where the run picks up and, when
+    /// `iterations` is given, extends the planned iteration count to it.
+    pub fn resume_run(latest: &Path, iterations: Option<u64>) -> anyhow::Result<Self>
+    where
+        N::Error: std::error::Error + Send + Sync + 'static,
+    {
+        let mut t =
+            Self::resume(latest).with_context(|| format!("resuming {}", latest.display()))?;
+        tracing::info!(
+            "resuming {} at iteration {}",
+            latest.display(),
+            t.iteration()
+        );
+        if let Some(it) = iterations {
+            t.set_iterations(it);
+        }
+        Ok(t)
+    }
+
     pub fn config(&self) -> &N::Config {
         &self.config
     }

@@ -310,18 +310,9 @@ pub fn open_objects(spec: &ObjectsSpec, split: Split) -> Result<Arc<Corpus>> {
 pub fn make_trainer(args: &TrainArgs, latest: &Path) -> Result<(PoseTrainer, bool)> {
     let resuming = args.resume && latest.exists();
     let trainer = if resuming {
-        let mut t = PoseTrainer::resume(latest)
-            .with_context(|| format!("resuming {}", latest.display()))?;
-        tracing::info!(
-            "resuming {} at iteration {}",
-            latest.display(),
-            t.iteration()
-        );
+        let mut t = PoseTrainer::resume_run(latest, args.iterations)?;
         if args.init.is_some() {
             tracing::info!("--init ignored: resuming the run's own checkpoint");
-        }
-        if let Some(it) = args.iterations {
-            t.set_iterations(it);
         }
         if let Some(lr) = args.learning_rate {
             tracing::info!("learning rate {} from iteration {}", lr, t.iteration());

@@ -304,17 +304,7 @@ pub fn evaluate_network(seg: &Segmenter, views: &[RoomView]) -> Result<MaskMetri
 /// optimiser, iteration 0; the preset's overrides apply), or a fresh network of the preset.
 pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Result<SegTrainer> {
     if args.resume && latest.exists() {
-        let mut t =
-            SegTrainer::resume(latest).with_context(|| format!("resuming {}", latest.display()))?;
-        tracing::info!(
-            "resuming {} at iteration {}",
-            latest.display(),
-            t.iteration()
-        );
-        if let Some(it) = args.iterations {
-            t.set_iterations(it);
-        }
-        return Ok(t);
+        return SegTrainer::resume_run(latest, args.iterations);
     }
     if args.resume {
         tracing::info!("--resume: no {} yet, starting fresh", latest.display());
