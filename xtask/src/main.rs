@@ -39,6 +39,7 @@
 //!   segmentation checkpoint's post-processing settings (chosen on validation scenes).
 
 mod bench;
+mod clutter;
 mod data;
 mod pose;
 mod seg;
@@ -90,6 +91,9 @@ enum Cmd {
     /// Score `incontext eval --cases` results of view cases: accuracy, ADD-S, verdict
     /// precision and recall, reliability diagram, calibration fit.
     VerifyReport(verify_report::VerifyReportArgs),
+    /// Render cluttered scenes (tables, bins, shelves with 3–15 objects) as PNG contact
+    /// sheets: depth, true instances, and a segmentation checkpoint's instances.
+    ClutterPreview(clutter::PreviewArgs),
     /// Find each object's rotational symmetries (discrete and continuous) on its normalised
     /// mesh: a table, and JSON with `--out`.
     Symmetries(symmetries::SymmetriesArgs),
@@ -112,6 +116,10 @@ fn main() -> std::process::ExitCode {
     let result = match Cli::parse().command {
         Cmd::Bench(args) => bench::run(args),
         Cmd::Test => test(),
+        Cmd::ClutterPreview(args) => {
+            init_tracing();
+            clutter::preview(args)
+        }
         Cmd::GenData(args) => {
             init_tracing();
             data::gen_data(args)

@@ -36,6 +36,10 @@ use crate::{
     Corpus, CorpusObject, CorpusOptions, DataError, ObjectSample, ROOM_UNIT_MM, RoomSample, Split,
 };
 
+/// The BOP 19 list of what to localise in each test image (`{scene_id, im_id, obj_id,
+/// inst_count}`), at the dataset's root.
+pub const TEST_TARGETS_FILE: &str = "test_targets_bop19.json";
+
 /// Options of [`BopWriter`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct BopWriteOptions {
@@ -129,10 +133,14 @@ pub struct BopWriter {
     root: PathBuf,
     options: BopWriteOptions,
     scenes: BTreeMap<u32, SceneAcc>,
-    objects: BTreeMap<u32, Arc<CorpusObject>>,
-    ids: HashMap<String, u32>,
+    /// BOP obj_id → the corpus object and its millimetres per normalised unit.
+    objects: BTreeMap<u32, (Arc<CorpusObject>, f64)>,
+    /// (corpus id, mm per unit as bits) → BOP obj_id: one object at two sizes is two models.
+    ids: HashMap<(String, u64), u32>,
     images: u64,
     camera: Option<Intrinsics>,
+    /// `test_targets_bop19.json` entries: (scene_id, im_id, obj_id, inst_count).
+    targets: Vec<(u32, u32, u32, usize)>,
 }
 
 fn write_json(path: &Path, value: &Value) -> Result<(), DataError> {
@@ -178,28 +186,33 @@ impl BopWriter {
             ids: HashMap::new(),
             images: 0,
             camera: None,
+            targets: Vec::new(),
         })
     }
 
-    fn obj_id(&mut self, object: &CorpusObject) -> u32 {
-        if let Some(&id) = self.ids.get(&object.id) {
+    /// The BOP id of `object` written at `unit_mm` millimetres per normalised unit
+    /// (registering the model on first use).
+    fn obj_id(&mut self, object: &CorpusObject, unit_mm: f64) -> u32 {
+        let key = (object.id.clone(), unit_mm.to_bits());
+        if let Some(&id) = self.ids.get(&key) {
             return id;
         }
-        let id = object.bop_obj_id.unwrap_or_else(|| {
-            (1..)
-                .find(|i| !self.objects.contains_key(i))
-                .unwrap_or(u32::MAX)
-        });
-        self.ids.insert(object.id.clone(), id);
+        let id = object
+            .bop_obj_id
+            .filter(|i| !self.objects.contains_key(i))
+            .unwrap_or_else(|| {
+                (1..)
+                    .find(|i| !self.objects.contains_key(i))
+                    .unwrap_or(u32::MAX)
+            });
+        self.ids.insert(key, id);
+        self.objects.insert(id, (Arc::new(object.clone()), unit_mm));
         id
     }
 
-    /// Writes one image; returns its `(scene_id, im_id)`.
-    pub fn add(&mut self, frame: &BopFrame<'_>) -> Result<(u32, u32), DataError> {
-        let k = frame.intrinsics;
-        frame.depth.check_size(k.width, k.height)?;
-        frame.mask_visib.check_size(k.width, k.height)?;
-        frame.mask_all.check_size(k.width, k.height)?;
+    /// The folder of the next image, its `(scene_id, im_id)`, with `depth/`, `mask/` and
+    /// `mask_visib/` created.
+    fn next_image(&mut self) -> Result<(PathBuf, u32, u32), DataError> {
         let per = self.options.images_per_scene as u64;
         let scene_id = (self.images / per) as u32;
         let im_id = (self.images % per) as u32;
@@ -210,11 +223,97 @@ impl BopWriter {
         for sub in ["depth", "mask", "mask_visib"] {
             create_dir(&scene_dir.join(sub))?;
         }
-        let obj_id = self.obj_id(frame.object);
-        self.objects
-            .entry(obj_id)
-            .or_insert_with(|| Arc::new(frame.object.clone()));
+        Ok((scene_dir, scene_id, im_id))
+    }
+
+    /// Writes one cluttered scene (metres) as one image with every placed object annotated, in
+    /// placement order (the target's instances first): models at their scene size, depth at
+    /// `depth_scale`, `mask_visib/` from the instance image, `mask/` from the full
+    /// silhouettes when the scene has them (else the visible mask). Objects with no visible
+    /// pixel are annotated too, as BOP does. Returns `(scene_id, im_id)`.
+    pub fn add_clutter(
+        &mut self,
+        scene: &crate::clutter::ClutterScene,
+    ) -> Result<(u32, u32), DataError> {
+        let k = scene.intrinsics;
+        scene.depth.check_size(k.width, k.height)?;
+        let (scene_dir, scene_id, im_id) = self.next_image()?;
+        ic_render::io::write_depth_png(
+            scene_dir.join(format!("depth/{im_id:06}.png")),
+            &scene.depth,
+            self.options.depth_scale,
+        )?;
+        let (mut gt, mut info) = (Vec::new(), Vec::new());
+        let (mut target_id, mut target_count) = (None, 0);
+        for (g, o) in scene.objects.iter().enumerate() {
+            let unit_mm = o.scale_m * 1000.0;
+            let obj_id = self.obj_id(&o.object, unit_mm);
+            let visib = scene.mask(o.instance_id);
+            let all = o.full_mask.clone().unwrap_or_else(|| visib.clone());
+            ic_render::io::write_mask_png(
+                scene_dir.join(format!("mask/{im_id:06}_{g:06}.png")),
+                &all,
+            )?;
+            ic_render::io::write_mask_png(
+                scene_dir.join(format!("mask_visib/{im_id:06}_{g:06}.png")),
+                &visib,
+            )?;
+            let count = |m: &Mask| m.data.iter().filter(|&&b| b).count();
+            let (px_all, px_visib) = (count(&all), count(&visib));
+            let px_valid = all
+                .data
+                .iter()
+                .zip(&scene.depth.data)
+                .filter(|(m, z)| **m && **z > 0.0)
+                .count();
+            let r = o.pose.rotation_row_major();
+            let t = o.pose.translation * 1000.0;
+            gt.push(
+                json!({"cam_R_m2c": r.concat(), "cam_t_m2c": [t.x, t.y, t.z], "obj_id": obj_id}),
+            );
+            if o.is_target {
+                target_id = Some(obj_id);
+                // BOP's rule: an instance is a target when at least 10 % of it is visible.
+                let fract = if px_all > 0 {
+                    px_visib as f64 / px_all as f64
+                } else {
+                    0.0
+                };
+                target_count += usize::from(px_visib > 0 && fract >= 0.1);
+            }
+            info.push(json!({
+                "bbox_obj": mask_bbox(&all),
+                "bbox_visib": mask_bbox(&visib),
+                "px_count_all": px_all,
+                "px_count_valid": px_valid,
+                "px_count_visib": px_visib,
+                "visib_fract": if px_all > 0 { px_visib as f64 / px_all as f64 } else { 0.0 },
+            }));
+        }
+        let acc = self.scenes.entry(scene_id).or_default();
+        acc.camera.insert(
+            im_id,
+            json!({"cam_K": k.k_row_major().concat(), "depth_scale": self.options.depth_scale}),
+        );
+        acc.gt.insert(im_id, Value::Array(gt));
+        acc.info.insert(im_id, Value::Array(info));
+        if let Some(obj_id) = target_id.filter(|_| target_count > 0) {
+            self.targets.push((scene_id, im_id, obj_id, target_count));
+        }
+        self.camera.get_or_insert(k);
+        self.images += 1;
+        Ok((scene_id, im_id))
+    }
+
+    /// Writes one image; returns its `(scene_id, im_id)`.
+    pub fn add(&mut self, frame: &BopFrame<'_>) -> Result<(u32, u32), DataError> {
+        let k = frame.intrinsics;
+        frame.depth.check_size(k.width, k.height)?;
+        frame.mask_visib.check_size(k.width, k.height)?;
+        frame.mask_all.check_size(k.width, k.height)?;
+        let (scene_dir, scene_id, im_id) = self.next_image()?;
         let u = self.options.unit_mm;
+        let obj_id = self.obj_id(frame.object, u);
         let metres = Image {
             width: k.width,
             height: k.height,
@@ -273,6 +372,7 @@ impl BopWriter {
         );
         self.camera.get_or_insert(k);
         self.images += 1;
+        self.targets.push((scene_id, im_id, obj_id, 1));
         Ok((scene_id, im_id))
     }
 
@@ -288,6 +388,14 @@ impl BopWriter {
             write_json(&dir.join("scene_gt.json"), &keyed(&acc.gt))?;
             write_json(&dir.join("scene_gt_info.json"), &keyed(&acc.info))?;
         }
+        let targets: Vec<Value> = self
+            .targets
+            .iter()
+            .map(|&(scene_id, im_id, obj_id, n)| {
+                json!({"im_id": im_id, "inst_count": n, "obj_id": obj_id, "scene_id": scene_id})
+            })
+            .collect();
+        write_json(&self.root.join(TEST_TARGETS_FILE), &Value::Array(targets))?;
         if let Some(k) = self.camera {
             write_json(
                 &self.root.join("camera.json"),
@@ -297,8 +405,8 @@ impl BopWriter {
         let models = self.root.join("models");
         let mut info = serde_json::Map::new();
         let mut names = BTreeMap::new();
-        for (obj_id, object) in &self.objects {
-            let u = self.options.unit_mm as f32;
+        for (obj_id, (object, unit_mm)) in &self.objects {
+            let u = *unit_mm as f32;
             let mesh = Mesh {
                 vertices: object.mesh.vertices.iter().map(|v| *v * u).collect(),
                 triangles: object.mesh.triangles.clone(),

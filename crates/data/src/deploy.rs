@@ -300,6 +300,11 @@ impl SensorRanges {
         }
     }
 
+    /// Whether every range is ordered and allowed (a message naming the first bad one).
+    pub fn validate_ranges(&self) -> Result<(), String> {
+        self.validate()
+    }
+
     fn validate(&self) -> Result<(), String> {
         let ordered = |(lo, hi): (f64, f64), min: f64| {
             lo.is_finite() && hi.is_finite() && lo >= min && hi >= lo

@@ -37,6 +37,8 @@
 //! assert_eq!(generator.sample(0).unwrap(), sample);
 //! ```
 
+/// Cluttered scenes like real ones: tables, bins and shelves holding many objects.
+pub mod clutter;
 mod corpus;
 /// Deployment-like sampling: whole-sphere views, roll, distance by image span, truncation,
 /// scale augmentation, occluders, the sensor model with drawn strengths.
@@ -52,6 +54,7 @@ pub mod bop;
 /// Registration cases for external tools (Open3D, TEASER++).
 pub mod export;
 
+pub use clutter::{ClutterConfig, ClutterGenerator, ClutterObject, ClutterScene, SupportKind};
 pub use corpus::{
     Corpus, CorpusInfo, CorpusKind, CorpusObject, CorpusOptions, FolderSplit, MixturePart,
     ObjectEntry, ObjectSource, OnBadMesh, SourceInfo, Split, TRAINING_SYMMETRY_OPTIONS,

@@ -28,6 +28,7 @@
 pub mod calibration;
 pub mod cases;
 pub mod errors;
+pub mod instances;
 pub mod metrics;
 pub mod plot;
 pub mod report;

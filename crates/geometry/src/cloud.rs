@@ -254,6 +254,33 @@ pub fn estimate_normals(
         .collect())
 }
 
+/// The principal axes of `points` (any frame): unit vectors, largest variance first, with
+/// the variance along each. `None` for an empty set or a non-finite point.
+pub fn principal_axes(points: &[Vec3]) -> Option<([glam::DVec3; 3], [f64; 3])> {
+    if points.is_empty() || points.iter().any(|p| !p.is_finite()) {
+        return None;
+    }
+    let n = points.len() as f64;
+    let mean = points.iter().map(|p| p.as_dvec3()).sum::<glam::DVec3>() / n;
+    let mut c = [[0.0f64; 3]; 3];
+    for p in points {
+        let d = p.as_dvec3() - mean;
+        let d = [d.x, d.y, d.z];
+        for r in 0..3 {
+            for s in 0..3 {
+                c[r][s] += d[r] * d[s] / n;
+            }
+        }
+    }
+    let m = faer::Mat::<f64>::from_fn(3, 3, |r, s| c[r][s]);
+    let eig = m.self_adjoint_eigen(faer::Side::Lower).ok()?;
+    let (u, values) = (eig.U(), eig.S());
+    // faer sorts the eigenvalues in ascending order.
+    let axis = |k: usize| glam::DVec3::new(u[(0, k)], u[(1, k)], u[(2, k)]).normalize_or_zero();
+    let value = |k: usize| values[k].max(0.0);
+    Some(([axis(2), axis(1), axis(0)], [value(2), value(1), value(0)]))
+}
+
 /// The unit eigenvector of the smallest eigenvalue of a symmetric 3×3 matrix (faer).
 fn smallest_eigenvector(c: &[[f64; 3]; 3]) -> glam::DVec3 {
     let m = faer::Mat::<f64>::from_fn(3, 3, |r, s| c[r][s]);
@@ -290,6 +317,27 @@ mod tests {
             }
             prop_assert_eq!(unique.len(), points.iter().map(|&p| voxel_of(p, size)).collect::<std::collections::BTreeSet<_>>().len());
         }
+    }
+
+    #[test]
+    fn principal_axes_of_a_stretched_box_are_its_sides_largest_first() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let points: Vec<Vec3> = (0..2000)
+            .map(|_| {
+                use rand::Rng;
+                Vec3::new(
+                    rng.random_range(-0.2..0.2),
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(-1.0..1.0),
+                )
+            })
+            .collect();
+        let (axes, var) = principal_axes(&points).unwrap();
+        assert!(axes[0].y.abs() > 0.99 && axes[1].z.abs() > 0.99 && axes[2].x.abs() > 0.99);
+        assert!(var[0] > var[1] && var[1] > var[2]);
+        // Uniform on [-a, a]: variance a²/3.
+        assert!((var[0] - 3.0).abs() < 0.3, "{var:?}");
+        assert!(principal_axes(&[]).is_none());
     }
 
     #[test]

@@ -53,8 +53,8 @@ pub mod symmetry;
 pub use assignment::Assignment;
 pub use camera::{Intrinsics, ViewSphere, Viewpoint, look_at};
 pub use cloud::{
-    PointCloud, estimate_normals, random_subsample, random_subsample_indices, voxel_downsample,
-    voxel_downsample_points, voxel_of,
+    PointCloud, estimate_normals, principal_axes, random_subsample, random_subsample_indices,
+    voxel_downsample, voxel_downsample_points, voxel_of,
 };
 pub use error::{GeometryError, MeshDataError, MeshError};
 pub use icp::*;

@@ -134,6 +134,7 @@ pub fn run(args: &DemoArgs, seed: u64) -> Result<Value> {
         out: Some(files.pose.clone()),
         overlay: Some(files.overlay.clone()),
         ply: Some(files.ply.clone()),
+        all: false,
     };
     let outcome = register::register_files(&rargs, seed)?;
     let r = &outcome.registration;

@@ -437,6 +437,10 @@ pub struct PipelineOptions {
     /// hypothesis (the network alone, no ICP). The originals stay: a pass can turn a right
     /// pose into a near-symmetric wrong one (`docs/decisions.md`).
     pub network_passes: usize,
+    /// With the segmentation network: how many of its instances (ranked by how well their
+    /// size fits the model, [`InstanceCandidate`]) are registered before giving up; the first
+    /// whose verdict is `ok` ends the search, otherwise the best verified one wins.
+    pub instance_tries: usize,
 }
 
 impl Default for PipelineOptions {
@@ -459,7 +463,50 @@ impl Default for PipelineOptions {
             sampled_hypotheses: 2,
             sweep_keep: 0,
             network_passes: 1,
+            instance_tries: 3,
         }
+    }
+}
+
+/// Visible extent over the model's diameter below which an instance is too small to be the
+/// object (most of it hidden, or another, smaller object): it is never registered.
+pub const MIN_SIZE_RATIO: f64 = 0.25;
+/// … and above which it is too large (another, larger object, or several merged): it is
+/// registered only when no instance fits (the crop around its centre may still hold the
+/// object, as when a mask runs into the support).
+pub const MAX_SIZE_RATIO: f64 = 1.3;
+/// The visible extent of an unoccluded object relative to its diameter, roughly: the
+/// ranking prefers instances near it.
+pub const TYPICAL_SIZE_RATIO: f64 = 0.8;
+
+/// One object instance found by the segmentation network, and how well its size fits the
+/// model.
+#[derive(Clone, Debug, Serialize)]
+pub struct InstanceCandidate {
+    /// The network's instance score (mean object probability).
+    pub score: f32,
+    /// Pixels of its mask.
+    pub pixels: usize,
+    /// The extent of its back-projected points (normalised units): twice the 90th
+    /// percentile of their distances to their centroid.
+    pub extent: f64,
+    /// `extent` over the model's diameter.
+    pub size_ratio: f64,
+    /// Whether the size ratio lies in [[`MIN_SIZE_RATIO`], [`MAX_SIZE_RATIO`]].
+    pub plausible: bool,
+    #[serde(skip)]
+    pub mask: Mask,
+}
+
+impl InstanceCandidate {
+    /// Ranking key: plausible first, then the size ratio nearest [`TYPICAL_SIZE_RATIO`] (in
+    /// log scale), then the segmentation score.
+    fn rank_key(&self) -> (bool, f64, f32) {
+        (
+            self.plausible,
+            -(self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs(),
+            self.score,
+        )
     }
 }
 
@@ -529,6 +576,8 @@ pub struct Registration {
     pub hypotheses_made: usize,
     pub hypotheses_verified: usize,
     pub segmentation: Option<SegmentationSummary>,
+    /// Which of the segmentation's instances this is, when the network chose the pixels.
+    pub instance: Option<InstanceChoice>,
     /// Object points after erosion and crop, and after voxelising.
     pub object_points: usize,
     pub object_voxels: usize,
@@ -543,6 +592,17 @@ pub struct Registration {
     /// The object mask used (before erosion), for depth inputs.
     #[serde(skip)]
     pub mask: Option<Mask>,
+}
+
+/// Which segmentation instance a registration used ([`Registration::instance`]).
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct InstanceChoice {
+    /// Its rank among the candidates (0 = the best size fit).
+    pub rank: usize,
+    /// How many instances scored above the segmentation threshold.
+    pub candidates: usize,
+    /// Its visible extent over the model's diameter.
+    pub size_ratio: f64,
 }
 
 /// One verified hypothesis of [`Registration::verified`].
@@ -869,42 +929,280 @@ impl Pipeline {
         depth_n
             .check_size(intrinsics.width, intrinsics.height)
             .map_err(|e| PipelineError::input(format!("depth map: {e}")))?;
-        let mut seconds = StageSeconds::default();
-        let (mask, summary) = match mask {
-            Some(m) => {
-                m.check_size(intrinsics.width, intrinsics.height)
-                    .map_err(|e| PipelineError::input(format!("mask: {e}")))?;
-                let pixels = m.data.iter().filter(|&&b| b).count();
-                if pixels == 0 {
-                    return Err(PipelineError::input("the mask is empty (no pixel is set)"));
-                }
-                (
-                    m.clone(),
-                    SegmentationSummary {
-                        source: "mask",
-                        score: None,
-                        pixels,
-                    },
-                )
+        let seconds = StageSeconds::default();
+        if let Some(m) = mask {
+            m.check_size(intrinsics.width, intrinsics.height)
+                .map_err(|e| PipelineError::input(format!("mask: {e}")))?;
+            let pixels = m.data.iter().filter(|&&b| b).count();
+            if pixels == 0 {
+                return Err(PipelineError::input("the mask is empty (no pixel is set)"));
             }
-            None => {
-                let seg = self.seg.as_ref().ok_or_else(|| {
-                    PipelineError::input("no segmentation network loaded and no mask given")
-                })?;
-                let s = seg.segmenter.segment(depth_n, intrinsics)?;
-                seconds.segmentation_network = s.network_seconds;
-                seconds.segmentation_post = s.post_seconds;
-                let pixels = s.mask.data.iter().filter(|&&b| b).count();
-                (
-                    s.mask,
-                    SegmentationSummary {
-                        source: "network",
-                        score: Some(s.score),
-                        pixels,
-                    },
-                )
+            let summary = SegmentationSummary {
+                source: "mask",
+                score: None,
+                pixels,
+            };
+            return self.register_mask(
+                object,
+                depth_n,
+                intrinsics,
+                m.clone(),
+                summary,
+                seed,
+                seconds,
+                clock,
+            );
+        }
+        let mut all = self.register_instances(object, depth_n, intrinsics, seed, clock, false)?;
+        Ok(all.remove(0))
+    }
+
+    /// Every instance of the object in `depth` (normalised units, as
+    /// [`Pipeline::register_depth_normalised`]): each instance the segmentation network finds
+    /// whose size fits the model is registered, and those whose verdict is not `not_found`
+    /// are returned, best render-and-compare score (or confidence) first; two registrations
+    /// of one object (ADD-S between their poses below 0.1 of the diameter) keep the better.
+    /// An empty list when none is found.
+    pub fn register_depth_all_normalised(
+        &self,
+        object: &Object,
+        depth_normalised: &DepthImage,
+        intrinsics: &Intrinsics,
+        seed: u64,
+    ) -> Result<Vec<Registration>> {
+        self.in_pool(|| {
+            intrinsics
+                .validate()
+                .map_err(|e| PipelineError::input(e.to_string()))?;
+            depth_normalised
+                .check_size(intrinsics.width, intrinsics.height)
+                .map_err(|e| PipelineError::input(format!("depth map: {e}")))?;
+            match self.register_instances(
+                object,
+                depth_normalised,
+                intrinsics,
+                seed,
+                Instant::now(),
+                true,
+            ) {
+                Ok(found) => Ok(found),
+                Err(PipelineError::NotFound(_)) => Ok(Vec::new()),
+                Err(e) => Err(e),
             }
+        })
+    }
+
+    /// [`Pipeline::register_depth_all_normalised`] for a depth map in the object's units.
+    pub fn register_depth_all(
+        &self,
+        object: &Object,
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+        seed: u64,
+    ) -> Result<Vec<Registration>> {
+        let inv = (1.0 / object.normalisation.scale) as f32;
+        let depth_n = Image {
+            width: depth.width,
+            height: depth.height,
+            data: depth.data.iter().map(|&z| z * inv).collect(),
         };
+        self.register_depth_all_normalised(object, &depth_n, intrinsics, seed)
+    }
+
+    /// The segmentation network's instances in `depth_n`, scored above its threshold, with
+    /// their size fit to `object`, best first ([`InstanceCandidate`]).
+    pub fn instance_candidates(
+        &self,
+        object: &Object,
+        depth_n: &DepthImage,
+        intrinsics: &Intrinsics,
+    ) -> Result<Vec<InstanceCandidate>> {
+        let seg = self.seg.as_ref().ok_or_else(|| {
+            PipelineError::input("no segmentation network loaded and no mask given")
+        })?;
+        let post = &seg.segmenter.config().post;
+        let found = seg.segmenter.instances(depth_n, intrinsics)?;
+        let best_score = found.first().map(|i| i.score);
+        let mut out = Vec::new();
+        for inst in found.into_iter().filter(|i| i.score > post.score_threshold) {
+            let mask = if post.depth_refine_px > 0 {
+                let band = ((post.depth_refine_px as f64 * depth_n.width as f64 / 640.0).round()
+                    as usize)
+                    .max(1);
+                ic_seg::post::refine_with_depth(&inst.mask, depth_n, band, post.depth_jump)
+            } else {
+                inst.mask
+            };
+            let points = intrinsics.back_project_depth(depth_n, Some(&mask))?;
+            if points.len() < 3 {
+                continue;
+            }
+            let centre = points.iter().copied().sum::<Vec3>() / points.len() as f32;
+            let mut d: Vec<f32> = points.iter().map(|p| p.distance(centre)).collect();
+            let k = ((d.len() as f64 * 0.9) as usize).min(d.len() - 1);
+            let (_, p90, _) = d.select_nth_unstable_by(k, f32::total_cmp);
+            let extent = 2.0 * *p90 as f64;
+            let size_ratio = extent / object.diameter.max(1e-9);
+            out.push(InstanceCandidate {
+                score: inst.score,
+                pixels: mask.data.iter().filter(|&&b| b).count(),
+                extent,
+                size_ratio,
+                plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
+                mask,
+            });
+        }
+        if out.is_empty() {
+            return Err(PipelineError::not_found(format!(
+                "object not found: the segmentation found no object instance scoring above {} (best score {})",
+                post.score_threshold,
+                best_score.map_or("none".into(), |s| format!("{s:.3}"))
+            )));
+        }
+        out.sort_by(|a, b| {
+            let (ka, kb) = (a.rank_key(), b.rank_key());
+            kb.0.cmp(&ka.0)
+                .then(kb.1.total_cmp(&ka.1))
+                .then(kb.2.total_cmp(&ka.2))
+        });
+        Ok(out)
+    }
+
+    /// Registers the best instances (all plausible ones with `all`), see
+    /// [`PipelineOptions::instance_tries`]; best first, never empty (not-found error instead).
+    fn register_instances(
+        &self,
+        object: &Object,
+        depth_n: &DepthImage,
+        intrinsics: &Intrinsics,
+        seed: u64,
+        clock: Instant,
+        all: bool,
+    ) -> Result<Vec<Registration>> {
+        let t = Instant::now();
+        let all_candidates = self.instance_candidates(object, depth_n, intrinsics)?;
+        let seg_seconds = t.elapsed().as_secs_f64();
+        let fitting = all_candidates.iter().filter(|c| c.plausible).count();
+        let candidates: Vec<&InstanceCandidate> = if fitting > 0 {
+            all_candidates.iter().filter(|c| c.plausible).collect()
+        } else {
+            all_candidates
+                .iter()
+                .filter(|c| c.size_ratio > MAX_SIZE_RATIO)
+                .take(1)
+                .collect()
+        };
+        if candidates.is_empty() {
+            let largest = all_candidates
+                .iter()
+                .map(|c| c.size_ratio)
+                .fold(0.0, f64::max);
+            return Err(PipelineError::not_found(format!(
+                "object not found: the segmentation found {} instance(s), all too small for the model \
+                 (the largest spans {:.2} of its diameter, at least {MIN_SIZE_RATIO} is needed); \
+                 is the mesh in the depth map's units (--model-unit-mm)?",
+                all_candidates.len(),
+                largest
+            )));
+        }
+        let tries = if all {
+            candidates.len()
+        } else {
+            self.options.instance_tries.max(1)
+        };
+        let mut done: Vec<Registration> = Vec::new();
+        let mut first_error = None;
+        for (i, c) in candidates.iter().take(tries).enumerate() {
+            let seconds = StageSeconds {
+                segmentation_network: seg_seconds,
+                ..StageSeconds::default()
+            };
+            let summary = SegmentationSummary {
+                source: "network",
+                score: Some(c.score),
+                pixels: c.pixels,
+            };
+            match self.register_mask(
+                object,
+                depth_n,
+                intrinsics,
+                c.mask.clone(),
+                summary,
+                seed,
+                seconds,
+                clock,
+            ) {
+                Ok(mut r) => {
+                    r.instance = Some(InstanceChoice {
+                        rank: i,
+                        candidates: all_candidates.len(),
+                        size_ratio: c.size_ratio,
+                    });
+                    let stop = !all && r.verdict == Verdict::Ok;
+                    done.push(r);
+                    if stop {
+                        break;
+                    }
+                }
+                Err(e @ PipelineError::NotFound(_)) => {
+                    first_error.get_or_insert(e);
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        if done.is_empty() {
+            return Err(first_error
+                .unwrap_or_else(|| PipelineError::not_found("no instance could be registered")));
+        }
+        let key = |r: &Registration| {
+            (
+                r.verdict != Verdict::NotFound,
+                r.verification.map_or(r.confidence, |v| v.score),
+            )
+        };
+        done.sort_by(|a, b| {
+            let (ka, kb) = (key(a), key(b));
+            kb.0.cmp(&ka.0).then(kb.1.total_cmp(&ka.1))
+        });
+        if all {
+            let mut kept: Vec<Registration> = Vec::new();
+            for r in done {
+                if r.verdict == Verdict::NotFound {
+                    continue;
+                }
+                let same = kept.iter().any(|k| {
+                    object.add_s(&k.pose_normalised, &r.pose_normalised) < 0.1 * object.diameter
+                });
+                if !same {
+                    kept.push(r);
+                }
+            }
+            if kept.is_empty() {
+                return Err(PipelineError::not_found(
+                    "no instance of the object was found",
+                ));
+            }
+            return Ok(kept);
+        }
+        for r in &mut done {
+            r.seconds.total = clock.elapsed().as_secs_f64();
+        }
+        Ok(done)
+    }
+
+    /// Registers `object` on the pixels of `mask` in `depth_n`.
+    #[allow(clippy::too_many_arguments)]
+    fn register_mask(
+        &self,
+        object: &Object,
+        depth_n: &DepthImage,
+        intrinsics: &Intrinsics,
+        mask: Mask,
+        summary: SegmentationSummary,
+        seed: u64,
+        mut seconds: StageSeconds,
+        clock: Instant,
+    ) -> Result<Registration> {
         let t = Instant::now();
         let post = self.post_config();
         let eroded = mask.eroded3x3_keeping_some(post.erosions);
@@ -1041,6 +1339,7 @@ impl Pipeline {
             hypotheses_made: made,
             hypotheses_verified: verified,
             segmentation: None,
+            instance: None,
             object_points: voxels.len(),
             object_voxels: voxels.len(),
             inlier_count: best.inlier_count,

@@ -68,6 +68,11 @@ pub struct RegisterArgs {
     /// Write the scene points (grey) and the aligned model (red) as a PLY, in mesh units.
     #[arg(long)]
     pub ply: Option<PathBuf>,
+    /// Every instance of the object in view (e.g. a bin of identical parts): the report's
+    /// `instances` lists each found one (pose, confidence, verdict), best first; `pose` is
+    /// the best. Needs the segmentation network (not with --mask).
+    #[arg(long)]
+    pub all: bool,
 }
 
 /// Which networks and refinement (shared by `register`, `demo`, `eval`).
@@ -214,6 +219,11 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
             args.model_unit_mm
         )));
     }
+    if args.all && args.mask.is_some() {
+        return Err(crate::CliError::input(
+            "--all finds every instance with the segmentation network; it cannot take --mask",
+        ));
+    }
     // Outputs before any work: none may replace a device, a link, an input or another output.
     let mut ins = vec![
         Named::new("--model", &args.model),
@@ -272,7 +282,20 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
     tracing::info!(seed, config = %config, "incontext register");
 
     let object = Object::from_mesh(mesh, seed).map_err(|e| e.context(args.model.display()))?;
-    let registration = pipeline.register_depth(&object, &depth, &k, mask.as_ref(), seed)?;
+    let (registration, others) = if args.all {
+        let mut found = pipeline.register_depth_all(&object, &depth, &k, seed)?;
+        if found.is_empty() {
+            return Err(crate::CliError::not_found(
+                "object not found: no instance of the model was found in the depth map; is this \
+                 the right mesh, in the depth map's units (--model-unit-mm), and is it in view?",
+            ));
+        }
+        let best = found.remove(0);
+        (best, found)
+    } else {
+        let r = pipeline.register_depth(&object, &depth, &k, mask.as_ref(), seed)?;
+        (r, Vec::new())
+    };
     if registration.verdict == Verdict::NotFound {
         return Err(not_found_error(&registration, &pipeline.options));
     }
@@ -289,7 +312,13 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
                 .mesh
                 .as_ref()
                 .ok_or_else(|| crate::CliError::internal("the object has no mesh"))?;
-            let model = overlay::render_mask(mesh, &registration.pose_normalised, &k)?;
+            let mut model = overlay::render_mask(mesh, &registration.pose_normalised, &k)?;
+            for r in &others {
+                let m = overlay::render_mask(mesh, &r.pose_normalised, &k)?;
+                for (a, b) in model.data.iter_mut().zip(&m.data) {
+                    *a |= *b;
+                }
+            }
             outputs.insert("overlay".into(), json!(path));
             Some(overlay::overlay_rgb(
                 &depth,
@@ -317,6 +346,24 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
     let outputs_seconds = t.elapsed().as_secs_f64();
 
     let s = &registration.seconds;
+    let instance_json = |r: &Registration| {
+        json!({
+            "pose": pose_json(&r.pose),
+            "pose_bop": bop_pose_json(&r.pose, args.model_unit_mm),
+            "pose_normalised": pose_json(&r.pose_normalised),
+            "confidence": r.confidence,
+            "verdict": r.verdict,
+            "segmentation": r.segmentation,
+            "instance": r.instance,
+            "verification": r.verification,
+        })
+    };
+    let instances: Option<Vec<Value>> = args.all.then(|| {
+        std::iter::once(&registration)
+            .chain(&others)
+            .map(instance_json)
+            .collect()
+    });
     let report = json!({
         "command": "register",
         "seed": seed,
@@ -328,8 +375,10 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
         "pose_normalised": pose_json(&registration.pose_normalised),
         "confidence": registration.confidence,
         "verdict": registration.verdict,
+        "instances": instances,
         "details": {
             "segmentation": registration.segmentation,
+            "instance": registration.instance,
             "object_points": registration.object_points,
             "object_voxels": registration.object_voxels,
             "inlier_count": registration.inlier_count,

@@ -377,6 +377,7 @@ fn train_pose(a: &PoseTrainArgs, seed: u64) -> Result<Value> {
         learning_rate: Some(c.learning_rate),
         validate_every: Some(c.validate_every),
         validation_count: Some(c.validation_count),
+        precise_bn: 0,
     };
     let objects = ic_train::ObjectsSpec::every_mesh_of(&c.objects);
     // Every mesh trains and validates: one corpus, loaded (and checked) once.
@@ -407,6 +408,8 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
     }
     let args = ic_train::seg::TrainArgs {
         preset: "cpu".into(),
+        scenes: "room".into(),
+        init: None,
         objects: c.objects.clone(),
         out: c.out.clone(),
         iterations: Some(c.iterations),

@@ -16,6 +16,15 @@ pub struct UNetConfig {
     pub channels: Vec<usize>,
     /// Batch-norm momentum of the running statistics.
     pub bn_momentum: f64,
+    /// Output maps: 1 = object probability (the paper's); 2 = object probability and
+    /// instance **core** (an object's pixels at least `train.core_radius` pixels inside its
+    /// own outline), whose connected components separate touching instances.
+    #[serde(default = "one")]
+    pub outputs: usize,
+}
+
+fn one() -> usize {
+    1
 }
 
 impl UNetConfig {
@@ -36,6 +45,9 @@ impl UNetConfig {
                 self.input_height,
                 self.channels.len()
             ));
+        }
+        if !(1..=2).contains(&self.outputs) {
+            return bad(format!("outputs {} must be 1 or 2", self.outputs));
         }
         if !(self.bn_momentum > 0.0 && self.bn_momentum <= 1.0) {
             return bad(format!(
@@ -74,6 +86,13 @@ pub struct PostConfig {
     /// Points farther than this from the masked points' centre are dropped, in normalised
     /// object units (multiplied by the model's normalisation scale; the paper: 1.2).
     pub crop_radius: f64,
+    /// Two-output networks: core probability above which a pixel seeds an instance.
+    #[serde(default = "default_core_threshold")]
+    pub core_threshold: f32,
+}
+
+fn default_core_threshold() -> f32 {
+    0.5
 }
 
 fn default_depth_refine_px() -> usize {
@@ -94,6 +113,7 @@ impl Default for PostConfig {
             depth_jump: 0.03,
             erosions: 1,
             crop_radius: 1.2,
+            core_threshold: 0.5,
         }
     }
 }
@@ -111,6 +131,14 @@ pub struct SegTrainConfig {
     /// the network input like any depth map.
     pub render_width: u32,
     pub render_height: u32,
+    /// Two-output networks: the instance core is an object's pixels whose neighbours within
+    /// this many pixels (square, at the network's resolution) all show the same object.
+    #[serde(default = "default_core_radius")]
+    pub core_radius: usize,
+}
+
+fn default_core_radius() -> usize {
+    2
 }
 
 /// Everything a checkpoint records.
@@ -137,6 +165,7 @@ impl SegConfig {
                 input_height: 120,
                 channels: vec![8, 16, 32, 128],
                 bn_momentum: 0.1,
+                outputs: 1,
             },
             post: PostConfig::default(),
             train: SegTrainConfig {
@@ -146,6 +175,39 @@ impl SegConfig {
                 dice_weight: 1.0,
                 render_width: 320,
                 render_height: 240,
+                core_radius: 2,
+            },
+        }
+    }
+
+    /// Every object of a cluttered scene (`ic_data::clutter`), instance by instance: the `cpu`
+    /// network (so its weights can start the training) on 256×192 — 1.6× the `cpu` preset's
+    /// width, so a 5 cm object 1.5 m away still spans ≈ 7 input pixels — with the object and
+    /// core outputs. Chosen by training cost on one core: a 5-level 8-16-32-64-128 U-Net on
+    /// 320×240 took ≈ 4.4 s per batch of 4; this one ≈ half of that (`docs/decisions.md`).
+    pub fn clutter() -> Self {
+        SegConfig {
+            preset: "clutter".into(),
+            net: UNetConfig {
+                input_width: 256,
+                input_height: 192,
+                channels: vec![8, 16, 32, 128],
+                bn_momentum: 0.1,
+                outputs: 2,
+            },
+            post: PostConfig {
+                pixel_threshold: 0.5,
+                depth_refine_px: 0,
+                ..PostConfig::default()
+            },
+            train: SegTrainConfig {
+                batch_size: 4,
+                learning_rate: 1e-3,
+                iterations: 20_000,
+                dice_weight: 1.0,
+                render_width: 256,
+                render_height: 192,
+                core_radius: 2,
             },
         }
     }
@@ -159,6 +221,7 @@ impl SegConfig {
                 input_height: 24,
                 channels: vec![4, 8],
                 bn_momentum: 0.1,
+                outputs: 1,
             },
             post: PostConfig {
                 min_pixels: 4,
@@ -171,6 +234,7 @@ impl SegConfig {
                 dice_weight: 1.0,
                 render_width: 64,
                 render_height: 48,
+                core_radius: 1,
             },
         }
     }
@@ -178,9 +242,16 @@ impl SegConfig {
     pub fn preset(name: &str) -> Result<Self> {
         match name {
             "cpu" => Ok(Self::cpu()),
+            "clutter" => Ok(Self::clutter()),
             "tiny" => Ok(Self::tiny()),
+            "tiny-clutter" => {
+                let mut c = Self::tiny();
+                c.preset = "tiny-clutter".into();
+                c.net.outputs = 2;
+                Ok(c)
+            }
             other => Err(SegError::Config(format!(
-                "unknown preset {other:?} (cpu | tiny)"
+                "unknown preset {other:?} (cpu | clutter | tiny | tiny-clutter)"
             ))),
         }
     }
@@ -192,6 +263,9 @@ impl SegConfig {
             return Err(SegError::Config(
                 "pixel_threshold and score_threshold must be in [0, 1)".into(),
             ));
+        }
+        if !(0.0..1.0).contains(&p.core_threshold) {
+            return Err(SegError::Config("core_threshold must be in [0, 1)".into()));
         }
         if !(p.crop_radius > 0.0 && p.crop_radius.is_finite()) {
             return Err(SegError::Config("crop_radius must be positive".into()));

@@ -10,7 +10,9 @@ use ic_geometry::{DepthImage, Image, Intrinsics, Mask};
 
 use crate::config::SegConfig;
 use crate::input::{INPUT_CHANNELS, prepare, upsample_bilinear};
-use crate::post::{best_instance, erode3x3, masked_points, refine_with_depth};
+use crate::post::{
+    Instance, best_instance, erode3x3, instances, masked_points, refine_with_depth, split_instances,
+};
 use crate::unet::UNet;
 use crate::{Result, SegError, checkpoint};
 
@@ -81,7 +83,8 @@ impl Segmenter {
         &mut self.config
     }
 
-    /// Per-pixel object probabilities of `depths` at the network's resolution, `[B][H·W]`.
+    /// Per-pixel probabilities of `depths` at the network's resolution, `[B][outputs·H·W]`
+    /// (the object map, then the core map of a two-output network).
     pub fn probabilities_small(&self, depths: &[&DepthImage]) -> Result<Vec<Vec<f32>>> {
         let (w, h) = (self.config.net.input_width, self.config.net.input_height);
         let mut input = Vec::with_capacity(depths.len() * INPUT_CHANNELS * (w * h) as usize);
@@ -110,7 +113,8 @@ impl Segmenter {
         let network_seconds = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
         let (w, h) = (self.config.net.input_width, self.config.net.input_height);
-        let mut prob = upsample_bilinear(&small, w, h, depth.width, depth.height);
+        let plane = (w * h) as usize;
+        let mut prob = upsample_bilinear(&small[..plane], w, h, depth.width, depth.height);
         // No object where the sensor saw nothing.
         for (p, z) in prob.iter_mut().zip(&depth.data) {
             if !(z.is_finite() && *z > 0.0) {
@@ -147,6 +151,65 @@ impl Segmenter {
             },
             network_seconds,
             post_seconds: t1.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Every object instance in `depth` (any resolution; it must match `intrinsics`), best
+    /// score first, masks at the depth map's resolution. A one-output network's instances
+    /// are the connected components of its object map; a two-output network's are split by
+    /// their cores ([`split_instances`], growth stopped at relative depth steps above
+    /// `post.depth_jump`). Instances below `post.min_pixels` (given for 640×480, scaled with
+    /// the area) are dropped; none is an empty list, not an error.
+    pub fn instances(&self, depth: &DepthImage, intrinsics: &Intrinsics) -> Result<Vec<Instance>> {
+        intrinsics.validate()?;
+        depth.check_size(intrinsics.width, intrinsics.height)?;
+        let small = self.probabilities_small(&[depth])?.remove(0);
+        let (w, h) = (self.config.net.input_width, self.config.net.input_height);
+        let plane = (w * h) as usize;
+        let valid = |mut p: Vec<f32>| {
+            for (p, z) in p.iter_mut().zip(&depth.data) {
+                if !(z.is_finite() && *z > 0.0) {
+                    *p = 0.0;
+                }
+            }
+            p
+        };
+        let object = valid(upsample_bilinear(
+            &small[..plane],
+            w,
+            h,
+            depth.width,
+            depth.height,
+        ));
+        let post = &self.config.post;
+        let area = (depth.width as f64 * depth.height as f64) / (640.0 * 480.0);
+        let min_pixels = ((post.min_pixels as f64 * area).round() as usize).max(1);
+        Ok(if self.config.net.outputs == 2 {
+            let core = valid(upsample_bilinear(
+                &small[plane..2 * plane],
+                w,
+                h,
+                depth.width,
+                depth.height,
+            ));
+            split_instances(
+                &object,
+                &core,
+                depth.width,
+                depth.height,
+                post.pixel_threshold,
+                post.core_threshold,
+                min_pixels,
+                Some((depth, post.depth_jump)),
+            )
+        } else {
+            instances(
+                &object,
+                depth.width,
+                depth.height,
+                post.pixel_threshold,
+                min_pixels,
+            )
         })
     }
 

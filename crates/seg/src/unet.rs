@@ -143,7 +143,8 @@ impl DoubleConv {
     }
 }
 
-/// The U-Net. Input `[B, 2, H, W]` (see [`crate::input`]), output logits `[B, 1, H, W]`.
+/// The U-Net. Input `[B, 2, H, W]` (see [`crate::input`]), output logits `[B, outputs, H, W]`
+/// (object, then instance core when `outputs` = 2).
 #[derive(Clone, Debug)]
 pub struct UNet {
     down: Vec<DoubleConv>,
@@ -176,7 +177,7 @@ impl UNet {
         Ok(UNet {
             down,
             up,
-            head: Conv2d::new(vb.pp("head"), ch[0], 1, 1, true)?,
+            head: Conv2d::new(vb.pp("head"), ch[0], cfg.outputs, 1, true)?,
             cfg: cfg.clone(),
         })
     }
@@ -185,7 +186,7 @@ impl UNet {
         &self.cfg
     }
 
-    /// Per-pixel object logits `[B, 1, H, W]`; `train` selects batch statistics.
+    /// Per-pixel logits `[B, outputs, H, W]`; `train` selects batch statistics.
     pub fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
         let mut skips = Vec::with_capacity(self.down.len());
         let mut h = x.clone();

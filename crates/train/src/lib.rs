@@ -348,8 +348,8 @@ pub trait Task {
     type Batch;
     /// `train.csv` header.
     const TRAIN_HEADER: &'static str;
-    /// `val.csv` header.
-    const VAL_HEADER: &'static str;
+    /// `val.csv` header (it may depend on the run, e.g. on the kind of validation scenes).
+    fn val_header(&self) -> &'static str;
     /// Name of [`StepRow::metric`] in log lines.
     const METRIC: &'static str;
 
@@ -494,7 +494,7 @@ where
     }
     let keep = resume.then_some(start);
     let mut csv = open_csv(&files.train_csv(), T::TRAIN_HEADER, keep)?;
-    let mut val_csv = open_csv(&files.val_csv(), T::VAL_HEADER, keep)?;
+    let mut val_csv = open_csv(&files.val_csv(), task.val_header(), keep)?;
     let mut best_score = previous_best_score(&files.best_json(), resume);
     let bar = progress_bar(total, start)?;
     let clock = Instant::now();

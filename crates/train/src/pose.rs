@@ -236,6 +236,11 @@ pub struct TrainArgs {
     pub validate_every: Option<u64>,
     #[arg(long)]
     pub validation_count: Option<usize>,
+    /// Before each validation, replace the batch-norm running statistics by their mean over
+    /// this many fixed batches of training-split samples (precise BN, as `eval-pose
+    /// --recalibrate-bn`; the saved weights carry them). 0 = the training average.
+    #[arg(long, default_value_t = 0)]
+    pub precise_bn: usize,
 }
 
 #[derive(clap::Args)]
@@ -409,6 +414,7 @@ pub fn train_corpora(
         "init": args.init,
         "sample": scfg,
         "validation_seed": VALIDATION_SEED,
+        "precise_bn_batches": args.precise_bn,
     });
     tracing::info!("data {}", serde_json::to_string(&data)?);
     check_data_record(&args.out.join("data.json"), &data, resuming)?;
@@ -430,14 +436,16 @@ pub fn train_corpora(
         scfg.clone(),
         seed,
     )?);
-    let val_gen = ObjectSampleGenerator::new(val_corpus.clone(), scfg, VALIDATION_SEED)?;
+    let val_gen = ObjectSampleGenerator::new(val_corpus.clone(), scfg.clone(), VALIDATION_SEED)?;
     let val_set: Vec<ObjectSample> = (0..cfg.train.validation_count as u64)
         .map(|i| val_gen.sample(i))
         .collect::<Result<_, _>>()?;
     let b = cfg.train.batch_size;
+    let bn_batches = recalibration_batches(&train_corpus, &scfg, b, args.precise_bn)?;
     let mut task = PoseTask {
         trainer,
         val_set,
+        bn_batches,
         symmetries,
         symmetries_path,
         train_corpus,
@@ -468,6 +476,8 @@ pub struct PoseTask {
     pub trainer: PoseTrainer,
     /// The fixed validation views.
     pub val_set: Vec<ObjectSample>,
+    /// Fixed training-split batches for precise BN before each validation (empty: none).
+    pub bn_batches: Vec<Vec<ObjectSample>>,
     /// Object id → symmetries (normalised frame), saved with every checkpoint.
     pub symmetries: HashMap<String, Vec<ic_geometry::Pose>>,
     pub symmetries_path: PathBuf,
@@ -479,9 +489,11 @@ impl Task for PoseTask {
     type Batch = Vec<ObjectSample>;
     const TRAIN_HEADER: &'static str =
         "iteration,loss,accuracy,loss_avg,accuracy_avg,matched_fraction,samples_per_s,elapsed_s";
-    const VAL_HEADER: &'static str = "iteration,rotation_median_deg,rotation_acc_5,rotation_acc_10,rotation_acc_15,translation_sq_median,translation_acc_1e2,correspondence_accuracy,elapsed_s,add_s_acc_01d,rotation_acc_15_sym";
     const METRIC: &'static str = "acc";
 
+    fn val_header(&self) -> &'static str {
+        "iteration,rotation_median_deg,rotation_acc_5,rotation_acc_10,rotation_acc_15,translation_sq_median,translation_acc_1e2,correspondence_accuracy,elapsed_s,add_s_acc_01d,rotation_acc_15_sym"
+    }
     fn iteration(&self) -> u64 {
         self.trainer.iteration()
     }
@@ -508,6 +520,11 @@ impl Task for PoseTask {
     }
 
     fn validate(&mut self, done: u64, elapsed: f64) -> Result<Validation> {
+        if !self.bn_batches.is_empty() {
+            // Training mode normalises with batch statistics, so replacing the running ones
+            // changes only what inference (validation, saved weights) sees.
+            self.trainer.recalibrate_batch_norm(&self.bn_batches)?;
+        }
         let est = self.trainer.estimator();
         let m = evaluate(&est, self.val_set.iter().cloned().map(Ok), |_| {})?;
         let row = format!(
@@ -747,11 +764,12 @@ pub fn check_data_record(path: &Path, data: &serde_json::Value, resuming: bool) 
     if resuming && let Ok(text) = std::fs::read_to_string(path) {
         let old: serde_json::Value =
             serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
-        // `init` only matters for a fresh start.
+        // `init` only matters for a fresh start; precise BN only changes what validation sees.
         let strip = |v: &serde_json::Value| {
             let mut v = v.clone();
             if let Some(o) = v.as_object_mut() {
                 o.remove("init");
+                o.remove("precise_bn_batches");
             }
             v
         };
@@ -769,6 +787,24 @@ pub fn check_data_record(path: &Path, data: &serde_json::Value, resuming: bool) 
 /// Seed of the sample stream used to recalibrate batch norm (training split).
 const RECALIBRATION_SEED: u64 = 0x0062_726e;
 
+/// `count` fixed batches of `batch` training-split samples for precise BN (seed
+/// [`RECALIBRATION_SEED`], whatever the run's seed).
+fn recalibration_batches(
+    corpus: &Arc<Corpus>,
+    scfg: &ObjectSampleConfig,
+    batch: usize,
+    count: usize,
+) -> Result<Vec<Vec<ObjectSample>>> {
+    if count == 0 {
+        return Ok(Vec::new());
+    }
+    let generator = ObjectSampleGenerator::new(corpus.clone(), scfg.clone(), RECALIBRATION_SEED)?;
+    let b = batch as u64;
+    Ok((0..count as u64)
+        .map(|k| (0..b).map(|i| generator.sample(k * b + i)).collect())
+        .collect::<Result<_, _>>()?)
+}
+
 /// `eval-pose`: measures a checkpoint on fixed samples, prints the JSON report and writes it
 /// (default `<model>.eval-<split>-<refine>.json`, `<model>.eval-<protocol>-<split>-<refine>.json`
 /// for the deployment protocol). RAYON_NUM_THREADS (`--threads`) is the caller's to set.
@@ -781,16 +817,13 @@ pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
         let mut trainer = PoseTrainer::new(cfg.clone(), 0)?;
         trainer.load_weights(&args.model)?;
         let corpus = open_objects(&objects, Split::Train)?;
-        let generator =
-            ObjectSampleGenerator::new(corpus, sample_config(&cfg, protocol), RECALIBRATION_SEED)?;
         let b = cfg.train.batch_size;
-        let batches: Vec<Vec<ObjectSample>> = (0..args.recalibrate_bn as u64)
-            .map(|k| {
-                (0..b as u64)
-                    .map(|i| generator.sample(k * b as u64 + i))
-                    .collect()
-            })
-            .collect::<Result<_, _>>()?;
+        let batches = recalibration_batches(
+            &corpus,
+            &sample_config(&cfg, protocol),
+            b,
+            args.recalibrate_bn,
+        )?;
         trainer.recalibrate_batch_norm(&batches)?;
         tracing::info!(
             "batch norm recalibrated on {} batches of {b} training-split samples (seed {RECALIBRATION_SEED:#x})",

@@ -16,9 +16,10 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;
+use ic_data::clutter::SUPPORT_ID_BASE;
 use ic_data::{
-    Corpus, CorpusOptions, FolderSplit, Prefetcher, RoomSampleConfig, RoomSampleGenerator,
-    RoomView, Split,
+    ClutterConfig, ClutterGenerator, ClutterScene, Corpus, CorpusOptions, FolderSplit, Prefetcher,
+    RoomSampleConfig, RoomSampleGenerator, RoomView, Split,
 };
 use ic_geometry::Mask;
 use ic_render::CpuRenderer;
@@ -79,6 +80,56 @@ pub struct SegStepStats {
 }
 
 impl Trainer<UNet> {
+    /// Starts a two-output network from a one-output checkpoint of the same channels (the
+    /// input size may differ: the network is fully convolutional): every weight is copied,
+    /// and the head's object output is copied into both outputs (the core map starts as the
+    /// object map). Errors name `path` and the tensor that does not fit.
+    pub fn load_widening_head(&mut self, path: &Path) -> Result<(), SegError> {
+        let config = ic_seg::checkpoint::read_config(path)?;
+        let bad = |message: String| SegError::Checkpoint {
+            path: path.to_path_buf(),
+            message,
+        };
+        if config.net.channels != self.config.net.channels
+            || config.net.outputs != 1
+            || self.config.net.outputs != 2
+        {
+            return Err(bad(format!(
+                "cannot widen a network of channels {:?} and {} output(s) into one of channels {:?} and {} outputs",
+                config.net.channels,
+                config.net.outputs,
+                self.config.net.channels,
+                self.config.net.outputs
+            )));
+        }
+        let tensors =
+            ic_nn::checkpoint::load_tensors(path, self.device()).map_err(|e| bad(e.to_string()))?;
+        let data = self
+            .varmap()
+            .data()
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        for (name, var) in data.iter() {
+            let t = tensors
+                .get(name)
+                .ok_or_else(|| bad(format!("missing tensor {name}")))?;
+            let t = if name.starts_with("head.") {
+                Tensor::cat(&[t, t], 0)?
+            } else {
+                t.clone()
+            };
+            if t.shape() != var.shape() {
+                return Err(bad(format!(
+                    "{name}: shape {:?}, expected {:?}",
+                    t.shape(),
+                    var.shape()
+                )));
+            }
+            var.set(&t)?;
+        }
+        Ok(())
+    }
+
     /// A segmenter sharing the current weights (inference mode), e.g. for validation.
     pub fn segmenter(&self) -> Segmenter {
         Segmenter::from_parts(self.net.clone(), self.config.clone())
@@ -89,13 +140,14 @@ impl Trainer<UNet> {
             self.config.net.input_width as usize,
             self.config.net.input_height as usize,
         );
+        let c = self.config.net.outputs;
         let b = examples.len();
         let mut input = Vec::with_capacity(b * INPUT_CHANNELS * w * h);
-        let mut target = Vec::with_capacity(b * w * h);
+        let mut target = Vec::with_capacity(b * c * w * h);
         for e in examples {
-            if e.input.len() != INPUT_CHANNELS * w * h || e.target.len() != w * h {
+            if e.input.len() != INPUT_CHANNELS * w * h || e.target.len() != c * w * h {
                 return Err(SegError::Input(format!(
-                    "example is not {INPUT_CHANNELS}×{h}×{w}"
+                    "example is not {INPUT_CHANNELS}×{h}×{w} with {c}×{h}×{w} targets"
                 )));
             }
             input.extend_from_slice(&e.input);
@@ -103,7 +155,7 @@ impl Trainer<UNet> {
         }
         Ok((
             Tensor::from_vec(input, (b, INPUT_CHANNELS, h, w), &self.device)?,
-            Tensor::from_vec(target, (b, 1, h, w), &self.device)?,
+            Tensor::from_vec(target, (b, c, h, w), &self.device)?,
         ))
     }
 
@@ -124,12 +176,14 @@ impl Trainer<UNet> {
         let loss = seg_loss(&logits, &y, self.config.train.dice_weight)?;
         let grads = loss.backward()?;
         self.apply(&grads)?;
+        // IoU of the object map (the first output).
         let pred = logits
             .detach()
+            .narrow(1, 0, 1)?
             .gt(0.0)?
             .to_dtype(DType::F32)?
             .flatten_from(1)?;
-        let yt = y.flatten_from(1)?;
+        let yt = y.narrow(1, 0, 1)?.flatten_from(1)?;
         let inter = (&pred * &yt)?.sum(1)?.to_vec1::<f32>()?;
         let union = ((&pred + &yt)?.gt(0.0)?.to_dtype(DType::F32)?)
             .sum(1)?
@@ -149,12 +203,24 @@ impl Trainer<UNet> {
 
 #[derive(clap::Args)]
 pub struct TrainArgs {
-    /// `cpu` or `tiny` (smoke tests).
+    /// `cpu`, `clutter` (with `--scenes clutter`) or `tiny` / `tiny-clutter` (smoke tests).
     #[arg(long, default_value = "cpu")]
     pub preset: String,
-    /// Folder of meshes with numeric stems (the blob folder: 000–999).
+    /// `room` (the paper's: one object in the cube room; `--objects` is a folder of meshes
+    /// with numeric stems, 000–749 train, 750–799 validation) or `clutter` (tables, bins and
+    /// shelves with 3–15 objects, `ic_data::clutter`; `--objects` is a folder with
+    /// `split.json` or a weighted mixture as for train-pose, validation on its `val` objects).
+    #[arg(long, default_value = "room")]
+    pub scenes: String,
+    /// See `--scenes`.
     #[arg(long)]
     pub objects: PathBuf,
+    /// Start from these weights (fresh optimiser, iteration 0): a checkpoint of the same
+    /// network, or a one-output one of the same channels for a two-output preset (its head
+    /// is widened: e.g. `--preset clutter --init models/seg-cpu.safetensors`). Ignored when
+    /// `--resume` finds a checkpoint.
+    #[arg(long)]
+    pub init: Option<PathBuf>,
     /// Output folder: latest.safetensors (resumable), best.safetensors (weights), CSV logs.
     #[arg(long)]
     pub out: PathBuf,
@@ -309,11 +375,21 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
     if args.resume {
         tracing::info!("--resume: no {} yet, starting fresh", latest.display());
     }
-    let mut cfg = match init {
+    // A one-output init for a two-output preset: the preset's configuration, the init's
+    // weights with the head widened.
+    let widen = match init {
         Some(p) => {
+            let c =
+                ic_seg::checkpoint::read_config(p).with_context(|| format!("{}", p.display()))?;
+            c.net.outputs == 1 && SegConfig::preset(&args.preset)?.net.outputs == 2
+        }
+        None => false,
+    };
+    let mut cfg = match init {
+        Some(p) if !widen => {
             ic_seg::checkpoint::read_config(p).with_context(|| format!("{}", p.display()))?
         }
-        None => SegConfig::preset(&args.preset)?,
+        _ => SegConfig::preset(&args.preset)?,
     };
     if let Some(v) = args.iterations {
         cfg.train.iterations = v;
@@ -326,8 +402,12 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
     }
     let mut t = SegTrainer::new(cfg, args.seed)?;
     if let Some(p) = init {
-        t.load_weights(p)
-            .with_context(|| format!("{}", p.display()))?;
+        if widen {
+            t.load_widening_head(p)?;
+        } else {
+            t.load_weights(p)
+                .with_context(|| format!("{}", p.display()))?;
+        }
         tracing::info!(
             "initialised from {}; fresh optimiser at iteration 0",
             p.display()
@@ -339,9 +419,105 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
 /// `train-seg`: trains into `args.out` on the blob-style folder `args.objects` until the
 /// planned iterations are done, the stop flag is set or the deadline passes.
 pub fn train(args: &TrainArgs, control: RunControl<'_>) -> Result<Outcome> {
-    let train_corpus = corpus(&args.objects, Split::Train, true)?;
-    let val_corpus = corpus(&args.objects, Split::Test, true)?;
-    train_objects(args, None, train_corpus, val_corpus, control)
+    let (train_corpus, val_corpus) = if scene_kind(args)? == SceneKind::Clutter {
+        let text = args
+            .objects
+            .to_str()
+            .with_context(|| format!("--objects {}: not UTF-8", args.objects.display()))?;
+        let spec: crate::objects::ObjectsSpec = text.parse()?;
+        (
+            crate::pose::open_objects(&spec, Split::Train)?,
+            crate::pose::open_objects(&spec, Split::Val)?,
+        )
+    } else {
+        (
+            corpus(&args.objects, Split::Train, true)?,
+            corpus(&args.objects, Split::Test, true)?,
+        )
+    };
+    train_objects(
+        args,
+        args.init.as_deref(),
+        train_corpus,
+        val_corpus,
+        control,
+    )
+}
+
+/// Which scenes a run trains on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SceneKind {
+    Room,
+    Clutter,
+}
+
+fn scene_kind(args: &TrainArgs) -> Result<SceneKind> {
+    match args.scenes.as_str() {
+        "room" => Ok(SceneKind::Room),
+        "clutter" => Ok(SceneKind::Clutter),
+        other => bail!("--scenes {other:?}: expected room or clutter"),
+    }
+}
+
+/// Where training examples come from.
+enum Source {
+    Room(RoomSampleGenerator),
+    Clutter(ClutterGenerator),
+}
+
+impl Source {
+    fn example(&self, index: u64, cfg: &SegConfig) -> Result<SegExample, ic_data::DataError> {
+        let example = match self {
+            Source::Room(g) => {
+                let v = g.view_with(&mut CpuRenderer::new(), index)?;
+                SegExample::new(&v.depth, &v.mask_visib, cfg)
+            }
+            Source::Clutter(g) => {
+                let s = g.scene(index)?;
+                SegExample::from_instances(&s.depth, &s.instances, |id| id < SUPPORT_ID_BASE, cfg)
+            }
+        };
+        example.map_err(|e| ic_data::DataError::Sample {
+            index,
+            message: e.to_string(),
+        })
+    }
+}
+
+/// The fixed validation scenes.
+pub enum ValidationSet {
+    Room(Vec<RoomView>),
+    Clutter(Vec<ClutterScene>),
+}
+
+/// True instances of a clutter scene worth finding: at least this many visible pixels at
+/// 640×480 (scaled with the image area); the target's first instance always counts.
+pub const MIN_TRUE_PIXELS_640: f64 = 30.0;
+
+/// The network's instances against the true ones of clutter `scenes`.
+pub fn evaluate_instances(
+    seg: &Segmenter,
+    scenes: &[ClutterScene],
+) -> Result<ic_eval::instances::InstanceSummary> {
+    let mut matches = Vec::with_capacity(scenes.len());
+    for s in scenes {
+        let found = seg.instances(&s.depth, &s.intrinsics)?;
+        let area = (s.intrinsics.width as f64 * s.intrinsics.height as f64) / (640.0 * 480.0);
+        let min = (MIN_TRUE_PIXELS_640 * area).round().max(1.0) as usize;
+        let truth: Vec<Mask> = s
+            .objects
+            .iter()
+            .enumerate()
+            .filter(|(i, o)| *i == 0 || o.visible_pixels >= min)
+            .map(|(_, o)| s.mask(o.instance_id))
+            .collect();
+        let pred: Vec<&Mask> = found.iter().map(|i| &i.mask).collect();
+        let truth: Vec<&Mask> = truth.iter().collect();
+        matches.push(
+            ic_eval::instances::match_instances(&pred, &truth).map_err(|e| anyhow::anyhow!(e))?,
+        );
+    }
+    Ok(ic_eval::instances::summarise(&matches))
 }
 
 /// [`train`] on given corpora, optionally starting from the weights of `init`.
@@ -365,25 +541,65 @@ pub fn train_objects(
         std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "all".into()),
         args.data_workers
     );
-    let room = RoomSampleConfig::default()
-        .with_resolution(cfg.train.render_width, cfg.train.render_height);
     tracing::info!(
         "objects: {} train, {} validation",
         train_corpus.len(),
         val_corpus.len()
     );
-    let generator = Arc::new(RoomSampleGenerator::new(train_corpus, room.clone(), seed)?);
-    let val_gen = RoomSampleGenerator::new(val_corpus, room, VALIDATION_SEED)?;
-    let mut renderer = CpuRenderer::new();
-    let val_views: Vec<RoomView> = (0..args.validation_count)
-        .map(|i| val_gen.view_with(&mut renderer, i))
-        .collect::<Result<_, _>>()?;
+    let (w, h) = (cfg.train.render_width, cfg.train.render_height);
+    let kind = scene_kind(args)?;
+    if (kind == SceneKind::Clutter) != (cfg.net.outputs == 2) {
+        bail!(
+            "--scenes {} needs a {} network (preset {:?} has {} output(s)): use --preset {}",
+            args.scenes,
+            if kind == SceneKind::Clutter {
+                "two-output"
+            } else {
+                "one-output"
+            },
+            cfg.preset,
+            cfg.net.outputs,
+            if kind == SceneKind::Clutter {
+                "clutter"
+            } else {
+                "cpu"
+            }
+        );
+    }
+    let (generator, val) = match kind {
+        SceneKind::Room => {
+            let room = RoomSampleConfig::default().with_resolution(w, h);
+            let val_gen = RoomSampleGenerator::new(val_corpus, room.clone(), VALIDATION_SEED)?;
+            let mut renderer = CpuRenderer::new();
+            let views: Vec<RoomView> = (0..args.validation_count)
+                .map(|i| val_gen.view_with(&mut renderer, i))
+                .collect::<Result<_, _>>()?;
+            (
+                Source::Room(RoomSampleGenerator::new(train_corpus, room, seed)?),
+                ValidationSet::Room(views),
+            )
+        }
+        SceneKind::Clutter => {
+            let clutter = ClutterConfig::default().with_resolution(w, h);
+            tracing::info!("clutter scenes {}", serde_json::to_string(&clutter)?);
+            let val_gen = ClutterGenerator::new(val_corpus, clutter.clone(), VALIDATION_SEED)?;
+            let scenes: Vec<ClutterScene> = (0..args.validation_count)
+                .map(|i| val_gen.scene(i))
+                .collect::<Result<_, _>>()?;
+            (
+                Source::Clutter(ClutterGenerator::new(train_corpus, clutter, seed)?),
+                ValidationSet::Clutter(scenes),
+            )
+        }
+    };
+    let generator = Arc::new(generator);
     let b = cfg.train.batch_size;
     let mut task = SegTask {
         trainer,
-        val_views,
+        val,
         validate_every: args.validate_every,
     };
+    let example_cfg = cfg.clone();
     let workers = args.data_workers;
     crate::run(
         &mut task,
@@ -396,7 +612,7 @@ pub fn train_objects(
                 Some(count * b as u64),
                 workers,
                 2 * b,
-                move |i| generator.view_with(&mut CpuRenderer::new(), i),
+                move |i| generator.example(i, &example_cfg),
             )
             .batches(b)
             .map(|r| r.map_err(anyhow::Error::from))
@@ -408,16 +624,25 @@ pub fn train_objects(
 pub struct SegTask {
     pub trainer: SegTrainer,
     /// The fixed validation scenes.
-    pub val_views: Vec<RoomView>,
+    pub val: ValidationSet,
     pub validate_every: u64,
 }
 
 impl Task for SegTask {
-    type Batch = Vec<RoomView>;
+    type Batch = Vec<SegExample>;
     const TRAIN_HEADER: &'static str = "iteration,loss,iou,loss_avg,iou_avg,scenes_per_s,elapsed_s";
-    const VAL_HEADER: &'static str = "iteration,iou_median,iou_mean,found_rate,not_found,elapsed_s";
     const METRIC: &'static str = "IoU";
 
+    fn val_header(&self) -> &'static str {
+        match self.val {
+            ValidationSet::Room(_) => {
+                "iteration,iou_median,iou_mean,found_rate,not_found,elapsed_s"
+            }
+            ValidationSet::Clutter(_) => {
+                "iteration,target_found_rate,recall,matched_iou_mean,over_segmented,under_segmented,instances_per_scene,elapsed_s"
+            }
+        }
+    }
     fn iteration(&self) -> u64 {
         self.trainer.iteration()
     }
@@ -431,12 +656,7 @@ impl Task for SegTask {
         self.validate_every
     }
 
-    fn step(&mut self, views: Vec<RoomView>) -> Result<StepRow> {
-        let cfg = self.trainer.config();
-        let examples: Vec<SegExample> = views
-            .iter()
-            .map(|v| SegExample::new(&v.depth, &v.mask_visib, cfg))
-            .collect::<Result<_, _>>()?;
+    fn step(&mut self, examples: Vec<SegExample>) -> Result<StepRow> {
         let stats = self.trainer.step(&examples)?;
         Ok(StepRow {
             loss: stats.loss as f64,
@@ -446,7 +666,37 @@ impl Task for SegTask {
     }
 
     fn validate(&mut self, done: u64, elapsed: f64) -> Result<Validation> {
-        let m = evaluate_network(&self.trainer.segmenter(), &self.val_views)?;
+        let views = match &self.val {
+            ValidationSet::Room(v) => v,
+            ValidationSet::Clutter(scenes) => {
+                let m = evaluate_instances(&self.trainer.segmenter(), scenes)?;
+                let row = format!(
+                    "{done},{:.4},{:.4},{:.4},{},{},{:.2},{elapsed:.1}",
+                    m.target_found_rate,
+                    m.recall,
+                    m.matched_iou_mean,
+                    m.over_segmented,
+                    m.under_segmented,
+                    m.predictions_per_image
+                );
+                let line = format!(
+                    "iteration {done}: validation target found {:.3}, recall {:.3}, matched IoU {:.3}, over {} under {}, {:.1} instances/scene",
+                    m.target_found_rate,
+                    m.recall,
+                    m.matched_iou_mean,
+                    m.over_segmented,
+                    m.under_segmented,
+                    m.predictions_per_image
+                );
+                return Ok(Validation {
+                    row,
+                    score: m.target_found_rate + m.recall + m.matched_iou_mean,
+                    line,
+                    report: serde_json::to_value(&m)?,
+                });
+            }
+        };
+        let m = evaluate_network(&self.trainer.segmenter(), views)?;
         let row = format!(
             "{done},{:.4},{:.4},{:.4},{},{elapsed:.1}",
             m.iou_median, m.iou_mean, m.found_rate, m.not_found

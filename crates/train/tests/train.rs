@@ -34,6 +34,7 @@ fn pose_args(out: &Path, iterations: u64, resume: bool) -> ic_train::pose::Train
         learning_rate: None,
         validate_every: Some(2),
         validation_count: Some(2),
+        precise_bn: 0,
     }
 }
 
@@ -155,6 +156,46 @@ fn a_resumed_pose_run_matches_an_uninterrupted_one_and_its_csv_continues() {
 }
 
 #[test]
+fn precise_bn_changes_only_the_running_statistics_not_the_training() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plain, precise) = (dir.path().join("plain"), dir.path().join("precise"));
+    ic_train::pose::train(&pose_args(&plain, 2, false), control(never())).unwrap();
+    let args = ic_train::pose::TrainArgs {
+        precise_bn: 2,
+        ..pose_args(&precise, 2, false)
+    };
+    ic_train::pose::train(&args, control(never())).unwrap();
+    // Training normalises with batch statistics: the same losses to the last digit.
+    let cols = [0, 1, 2, 5];
+    assert_eq!(
+        rows(&plain.join("train.csv"), &cols),
+        rows(&precise.join("train.csv"), &cols)
+    );
+    let load = |p: &Path| {
+        candle_core::safetensors::load(p.join("final.safetensors"), &candle_core::Device::Cpu)
+            .unwrap()
+    };
+    let (a, b) = (load(&plain), load(&precise));
+    let same = |k: &str| {
+        let bits = |t: &candle_core::Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        bits(&a[k]) == bits(&b[k])
+    };
+    let (mut stats, mut changed) = (0, 0);
+    for k in a.keys() {
+        if k.ends_with("running_mean") || k.ends_with("running_var") {
+            stats += 1;
+            changed += usize::from(!same(k));
+        } else {
+            assert!(same(k), "{k}: a weight changed");
+        }
+    }
+    assert!(
+        stats > 0 && changed == stats,
+        "{changed} of {stats} statistics replaced"
+    );
+}
+
+#[test]
 fn a_stop_request_or_a_deadline_saves_a_resumable_checkpoint() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("run");
@@ -187,6 +228,8 @@ fn a_stop_request_or_a_deadline_saves_a_resumable_checkpoint() {
 fn seg_args(out: &Path, iterations: u64, resume: bool) -> ic_train::seg::TrainArgs {
     ic_train::seg::TrainArgs {
         preset: "tiny".into(),
+        scenes: "room".into(),
+        init: None,
         objects: "unused".into(),
         out: out.to_path_buf(),
         iterations: Some(iterations),
@@ -241,4 +284,72 @@ fn a_resumed_segmentation_run_matches_an_uninterrupted_one() {
         assert_same_checkpoint(&straight.join(file), &split.join(file));
     }
     assert!(ic_seg::Segmenter::load(&split.join("best.safetensors")).is_ok());
+}
+
+#[test]
+fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("clutter");
+    let args = ic_train::seg::TrainArgs {
+        preset: "tiny-clutter".into(),
+        scenes: "clutter".into(),
+        objects: "procedural@4:1".into(),
+        ..seg_args(&out, 2, false)
+    };
+    let o = ic_train::seg::train(&args, control(never())).unwrap();
+    assert_eq!((o.ending, o.iteration), (Ending::Finished, 2));
+    let header = std::fs::read_to_string(out.join("val.csv")).unwrap();
+    assert!(
+        header.starts_with("iteration,target_found_rate,recall,matched_iou_mean"),
+        "{header}"
+    );
+    assert_eq!(iterations_of(&out.join("val.csv")), [2]);
+    let seg = ic_seg::Segmenter::load(&out.join("final.safetensors")).unwrap();
+    assert_eq!(seg.config().net.outputs, 2);
+    // A one-output preset cannot train on clutter scenes (no core map to learn).
+    let wrong = ic_train::seg::TrainArgs {
+        preset: "tiny".into(),
+        out: dir.path().join("wrong"),
+        ..args
+    };
+    let err = ic_train::seg::train(&wrong, control(never())).unwrap_err();
+    assert!(format!("{err:#}").contains("two-output"), "{err:#}");
+}
+
+#[test]
+fn a_one_output_checkpoint_starts_a_two_output_network_with_its_head_widened() {
+    let dir = tempfile::tempdir().unwrap();
+    let room = dir.path().join("room");
+    seg_run(&room, 1, false);
+    let init = room.join("final.safetensors");
+    let args = ic_train::seg::TrainArgs {
+        preset: "tiny-clutter".into(),
+        scenes: "clutter".into(),
+        ..seg_args(&dir.path().join("clutter"), 1, false)
+    };
+    let t = ic_train::seg::make_trainer(&args, &dir.path().join("none"), Some(&init)).unwrap();
+    assert_eq!(t.config().net.outputs, 2);
+    let widened = dir.path().join("widened.safetensors");
+    t.save_weights(&widened).unwrap();
+    let load = |p: &Path| candle_core::safetensors::load(p, &candle_core::Device::Cpu).unwrap();
+    let (a, b) = (load(&init), load(&widened));
+    let flat = |t: &candle_core::Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    for (name, t) in &a {
+        if name.starts_with("head.") {
+            let w = flat(&b[name]);
+            let (first, second) = w.split_at(w.len() / 2);
+            assert_eq!((first, second), (&flat(t)[..], &flat(t)[..]), "{name}");
+        } else {
+            assert_eq!(flat(t), flat(&b[name]), "{name}");
+        }
+    }
+    // Channels that differ are refused, naming the file.
+    let wrong = ic_train::seg::TrainArgs {
+        preset: "clutter".into(),
+        ..args
+    };
+    let err = ic_train::seg::make_trainer(&wrong, &dir.path().join("none"), Some(&init))
+        .err()
+        .unwrap();
+    assert!(format!("{err:#}").contains("final.safetensors"), "{err:#}");
 }

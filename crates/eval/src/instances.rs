@@ -1,0 +1,188 @@
+//! Instance segmentation quality on scenes with many objects: predicted instance masks
+//! against the true visible masks of one image (pixels of one resolution).
+//!
+//! - A true instance is **found** when some predicted instance overlaps it with IoU ≥ 0.5
+//!   (at most one prediction can, since two masks with IoU > 0.5 with a third overlap).
+//! - **Over-segmentation**: a true instance of which two or more predicted instances each hold
+//!   at least 20 % of the pixels (one object cut in pieces).
+//! - **Under-segmentation**: a predicted instance holding at least 20 % of the pixels of two or
+//!   more true instances (objects merged, e.g. a heap of cups as one).
+
+use ic_geometry::Mask;
+use serde::Serialize;
+
+/// The share of a mask's pixels that counts as "holding" it for over/under-segmentation.
+pub const HOLD_FRACTION: f64 = 0.2;
+
+/// What one image's predicted instances did with its true instances.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct InstanceMatch {
+    /// For each true instance, the best IoU of any predicted instance (0 if none overlaps),
+    /// and that prediction's index.
+    pub best_iou: Vec<f64>,
+    pub best_prediction: Vec<Option<usize>>,
+    pub over_segmented: usize,
+    pub under_segmented: usize,
+    pub predictions: usize,
+}
+
+impl InstanceMatch {
+    /// True instances found (best IoU ≥ 0.5).
+    pub fn found(&self) -> usize {
+        self.best_iou.iter().filter(|&&i| i >= 0.5).count()
+    }
+}
+
+/// Matches `predicted` against `truth` (all masks of one size; checked).
+pub fn match_instances(predicted: &[&Mask], truth: &[&Mask]) -> Result<InstanceMatch, String> {
+    let size = truth
+        .first()
+        .or(predicted.first())
+        .map(|m| (m.width, m.height));
+    for m in predicted.iter().chain(truth) {
+        if Some((m.width, m.height)) != size {
+            return Err(format!(
+                "masks of different sizes: {}×{} vs {:?}",
+                m.width, m.height, size
+            ));
+        }
+    }
+    let count = |m: &Mask| m.data.iter().filter(|&&b| b).count();
+    let pred_px: Vec<usize> = predicted.iter().map(|m| count(m)).collect();
+    let true_px: Vec<usize> = truth.iter().map(|m| count(m)).collect();
+    // overlap[t][p]
+    let overlap: Vec<Vec<usize>> = truth
+        .iter()
+        .map(|t| {
+            predicted
+                .iter()
+                .map(|p| {
+                    t.data
+                        .iter()
+                        .zip(&p.data)
+                        .filter(|(a, b)| **a && **b)
+                        .count()
+                })
+                .collect()
+        })
+        .collect();
+    let mut out = InstanceMatch {
+        predictions: predicted.len(),
+        ..InstanceMatch::default()
+    };
+    for (t, row) in overlap.iter().enumerate() {
+        let mut best = (0.0, None);
+        let mut holders = 0;
+        for (p, &o) in row.iter().enumerate() {
+            let union = true_px[t] + pred_px[p] - o;
+            let iou = if union > 0 {
+                o as f64 / union as f64
+            } else {
+                0.0
+            };
+            if o > 0 && iou > best.0 {
+                best = (iou, Some(p));
+            }
+            holders += usize::from(true_px[t] > 0 && o as f64 >= HOLD_FRACTION * true_px[t] as f64);
+        }
+        out.best_iou.push(best.0);
+        out.best_prediction.push(best.1);
+        out.over_segmented += usize::from(holders >= 2);
+    }
+    for p in 0..predicted.len() {
+        let held = overlap
+            .iter()
+            .zip(&true_px)
+            .filter(|(row, px)| **px > 0 && row[p] as f64 >= HOLD_FRACTION * **px as f64)
+            .count();
+        out.under_segmented += usize::from(held >= 2);
+    }
+    Ok(out)
+}
+
+/// Instance segmentation quality over many images.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct InstanceSummary {
+    pub images: usize,
+    pub true_instances: usize,
+    /// Images whose target (the first true instance given) was found.
+    pub target_found_rate: f64,
+    /// True instances found, over all true instances.
+    pub recall: f64,
+    /// Mean IoU of the found instances.
+    pub matched_iou_mean: f64,
+    /// Mean best IoU over all true instances (0 for a missed one).
+    pub best_iou_mean: f64,
+    pub over_segmented: usize,
+    pub under_segmented: usize,
+    pub predictions_per_image: f64,
+}
+
+/// Sums per-image matches (each image's first true instance is its target).
+pub fn summarise(matches: &[InstanceMatch]) -> InstanceSummary {
+    let n = matches.len();
+    let all: Vec<f64> = matches.iter().flat_map(|m| m.best_iou.clone()).collect();
+    let found: Vec<f64> = all.iter().copied().filter(|&i| i >= 0.5).collect();
+    let mean = |v: &[f64]| {
+        if v.is_empty() {
+            0.0
+        } else {
+            v.iter().sum::<f64>() / v.len() as f64
+        }
+    };
+    InstanceSummary {
+        images: n,
+        true_instances: all.len(),
+        target_found_rate: matches
+            .iter()
+            .filter(|m| m.best_iou.first().is_some_and(|&i| i >= 0.5))
+            .count() as f64
+            / n.max(1) as f64,
+        recall: found.len() as f64 / all.len().max(1) as f64,
+        matched_iou_mean: mean(&found),
+        best_iou_mean: mean(&all),
+        over_segmented: matches.iter().map(|m| m.over_segmented).sum(),
+        under_segmented: matches.iter().map(|m| m.under_segmented).sum(),
+        predictions_per_image: matches.iter().map(|m| m.predictions).sum::<usize>() as f64
+            / n.max(1) as f64,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn mask(rows: &[&str], c: char) -> Mask {
+        let h = rows.len() as u32;
+        let w = rows[0].len() as u32;
+        Mask::from_vec(
+            w,
+            h,
+            rows.iter()
+                .flat_map(|r| r.chars().map(|x| x == c))
+                .collect(),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn a_merge_is_under_segmentation_and_a_cut_is_over_segmentation() {
+        // Truth: a (left) and b (right). Prediction 1 merges them; then a cut of a in two.
+        let truth = ["aaabbb", "aaabbb"];
+        let (a, b) = (mask(&truth, 'a'), mask(&truth, 'b'));
+        let merged = mask(&["xxxxxx", "xxxxxx"], 'x');
+        let m = match_instances(&[&merged], &[&a, &b]).unwrap();
+        assert_eq!((m.under_segmented, m.over_segmented), (1, 0));
+        assert_eq!(m.best_iou, vec![0.5, 0.5]);
+        let cut = ["ppqbbb", "ppqbbb"];
+        let (p, q, r) = (mask(&cut, 'p'), mask(&cut, 'q'), mask(&cut, 'b'));
+        let m = match_instances(&[&p, &q, &r], &[&a, &b]).unwrap();
+        assert_eq!((m.under_segmented, m.over_segmented), (0, 1));
+        assert_eq!(m.best_prediction, vec![Some(0), Some(2)]);
+        assert_eq!(m.found(), 2);
+        let s = summarise(&[m]);
+        assert_eq!((s.images, s.true_instances, s.recall), (1, 2, 1.0));
+        assert_eq!(s.target_found_rate, 1.0);
+        assert!(match_instances(&[&mask(&["x"], 'x')], &[&a]).is_err());
+    }
+}

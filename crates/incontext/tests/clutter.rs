@@ -1,0 +1,175 @@
+//! Scenes with several objects, as `incontext register` meets them: every instance of the
+//! model with `--all`, and a scene whose only object is not the model.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use ic_geometry::glam::DVec3;
+use ic_geometry::io::{PlyEncoding, write_mesh_ply};
+use ic_geometry::{Image, Intrinsics, Mesh, Pose, look_at};
+use ic_render::{Camera, CpuRenderer, Renderer, Scene};
+use serde_json::json;
+
+mod common;
+use common::*;
+
+/// The model of the tests: a procedural object 200 mm across, in mm.
+fn model_mm() -> Mesh {
+    let mut mesh = ic_geometry::shapes::random_object(3);
+    mesh.normalise().unwrap();
+    Mesh {
+        vertices: mesh.vertices.iter().map(|v| *v * 100.0).collect(),
+        triangles: mesh.triangles,
+    }
+}
+
+/// Renders `objects` (mesh, model → world pose; world z up, mm) standing on a 1.2 m table top
+/// at z = 0, seen from 750 mm by a 320×240 camera; writes depth.png (0.1 mm steps) and
+/// camera.json into `dir` and returns the world → camera pose.
+fn render_on_table(dir: &Path, objects: &[(Arc<Mesh>, Pose)]) -> Pose {
+    let k = Intrinsics::new(262.5, 262.5, 159.5, 119.5, 320, 240).unwrap();
+    let mut scene = Scene::new();
+    for (i, (mesh, pose)) in objects.iter().enumerate() {
+        scene.push(mesh.clone(), *pose, i as u32 + 1);
+    }
+    let table =
+        ic_geometry::shapes::box_mesh(ic_geometry::glam::Vec3::new(600.0, 600.0, 10.0)).unwrap();
+    scene.push(
+        Arc::new(table),
+        Pose::from_translation(DVec3::new(0.0, 0.0, -10.0)),
+        100,
+    );
+    let world_to_camera = look_at(
+        DVec3::new(0.0, -450.0, 600.0),
+        DVec3::new(0.0, 0.0, 40.0),
+        DVec3::Z,
+    )
+    .unwrap();
+    let view = CpuRenderer::new()
+        .render(&scene, &Camera::new(k, world_to_camera))
+        .unwrap();
+    let metres = Image {
+        width: 320,
+        height: 240,
+        data: view.depth.data.iter().map(|z| z / 1000.0).collect(),
+    };
+    ic_render::io::write_depth_png(dir.join("depth.png"), &metres, 0.1).unwrap();
+    write(
+        &dir.join("camera.json"),
+        &json!({"cam_K": k.k_row_major(), "depth_scale": 0.1, "width": 320, "height": 240}),
+    );
+    world_to_camera
+}
+
+/// The model resting on the table at (x, y), turned by `yaw` about the vertical.
+fn on_table(mesh: &Mesh, x: f64, y: f64, yaw: f64) -> Pose {
+    let min_z = mesh
+        .vertices
+        .iter()
+        .map(|v| v.z as f64)
+        .fold(f64::INFINITY, f64::min);
+    Pose::new(
+        ic_geometry::glam::DMat3::from_rotation_z(yaw),
+        DVec3::new(x, y, -min_z),
+    )
+}
+
+#[test]
+fn register_all_returns_each_instance_of_the_model_best_first() {
+    let dir = tempfile::tempdir().unwrap();
+    let mesh = model_mm();
+    write_mesh_ply(
+        dir.path().join("model.ply"),
+        &mesh,
+        PlyEncoding::BinaryLittleEndian,
+    )
+    .unwrap();
+    let poses = [
+        on_table(&mesh, -170.0, 0.0, 0.3),
+        on_table(&mesh, 170.0, 40.0, 2.0),
+    ];
+    let shared = Arc::new(mesh);
+    let world_to_camera = render_on_table(
+        dir.path(),
+        &poses
+            .iter()
+            .map(|p| (shared.clone(), *p))
+            .collect::<Vec<_>>(),
+    );
+    let truths: Vec<Pose> = poses.iter().map(|p| world_to_camera.compose(p)).collect();
+    let model = s(&dir.path().join("model.ply")).to_string();
+    let depth = s(&dir.path().join("depth.png")).to_string();
+    let camera = s(&dir.path().join("camera.json")).to_string();
+    let o = incontext(&[
+        "register", "--model", &model, "--depth", &depth, "--camera", &camera, "--all", "--json",
+        "--seed", "1",
+    ]);
+    assert!(
+        o.status.code() == Some(0) || o.status.code() == Some(4),
+        "{}",
+        stderr(&o)
+    );
+    let report = json_stdout(&o);
+    let instances = report["instances"].as_array().expect("an instances list");
+    assert!(
+        instances.len() >= 2,
+        "{} instances: {report:#}",
+        instances.len()
+    );
+    // Each true instance is found, by a different returned pose.
+    let mut used = Vec::new();
+    for truth in &truths {
+        let hit = instances.iter().enumerate().find(|(i, inst)| {
+            let (err, diameter) = add_s(
+                &dir.path().join("model.ply"),
+                &pose_of(&inst["pose"]),
+                truth,
+            );
+            !used.contains(i) && err < 0.1 * diameter
+        });
+        let (i, _) =
+            hit.unwrap_or_else(|| panic!("no returned pose matches {truth:?}: {report:#}"));
+        used.push(i);
+    }
+    // Best first, and the top-level pose is the first instance's.
+    assert_eq!(report["pose"], instances[0]["pose"]);
+    // --all needs the network's instances.
+    let o = incontext(&[
+        "register", "--model", &model, "--depth", &depth, "--camera", &camera, "--all", "--mask",
+        &depth,
+    ]);
+    assert_exit(o, &[], 2, &["--all", "--mask"]);
+}
+
+#[test]
+fn a_scene_whose_only_object_is_not_the_model_is_not_found() {
+    let dir = tempfile::tempdir().unwrap();
+    write_mesh_ply(
+        dir.path().join("model.ply"),
+        &model_mm(),
+        PlyEncoding::BinaryLittleEndian,
+    )
+    .unwrap();
+    // A 40 mm cube: another object, far too small to be the 200 mm model.
+    let cube = ic_geometry::shapes::box_mesh(ic_geometry::glam::Vec3::splat(20.0)).unwrap();
+    render_on_table(
+        dir.path(),
+        &[(
+            Arc::new(cube),
+            Pose::from_translation(DVec3::new(0.0, 0.0, 20.0)),
+        )],
+    );
+    let model = s(&dir.path().join("model.ply")).to_string();
+    let depth = s(&dir.path().join("depth.png")).to_string();
+    let camera = s(&dir.path().join("camera.json")).to_string();
+    for all in [false, true] {
+        let mut args = vec![
+            "register", "--model", &model, "--depth", &depth, "--camera", &camera, "--json",
+        ];
+        if all {
+            args.push("--all");
+        }
+        let o = check(&args, 3, &["object not found"]);
+        assert_eq!(json_stdout(&o)["kind"], "not_found");
+    }
+}
