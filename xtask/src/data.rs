@@ -9,11 +9,12 @@ use clap::{Args, ValueEnum};
 use ic_data::bop::{BopWriteOptions, BopWriter};
 use ic_data::export::{write_object_case, write_room_case};
 use ic_data::{
+    ClutterConfig, ClutterGenerator,
     Corpus, CorpusOptions, FolderSplit, ObjectSampleConfig, ObjectSampleGenerator, OnBadMesh,
     Prefetcher, RoomSampleConfig, RoomSampleGenerator, Split,
 };
 use indicatif::{ProgressBar, ProgressStyle};
-use serde_json::json;
+use serde_json::{Value, json};
 
 /// Where the objects come from.
 #[derive(Args, Debug, Clone)]
@@ -47,7 +48,7 @@ pub struct CorpusArgs {
 pub struct GenDataArgs {
     #[command(flatten)]
     pub corpus: CorpusArgs,
-    /// Output folder (holds `noback/`, `room/` and `manifest.json`).
+    /// Output folder (holds `noback/`, `room/`, `clutter/` and `manifest.json`).
     #[arg(long, default_value = "target/data")]
     pub out: PathBuf,
     #[arg(long, default_value_t = 0)]
@@ -58,6 +59,11 @@ pub struct GenDataArgs {
     /// Room samples (640×480).
     #[arg(long, default_value_t = 50)]
     pub room_count: u64,
+    /// Cluttered scenes (`ic_data::clutter`: 640×480, tables, bins and shelves with 3–15
+    /// objects of the split at fixed sizes, the target's copies listed in
+    /// `test_targets_bop19.json`, the sensor model on), written to `clutter/`.
+    #[arg(long, default_value_t = 0)]
+    pub clutter_count: u64,
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub workers: Option<usize>,
@@ -272,12 +278,46 @@ pub fn gen_data(args: GenDataArgs) -> Result<()> {
     bar.finish();
     let room = writer.finish()?;
     let below5 = rates.0.iter().filter(|&&r| r < 0.05).count();
+    let clutter_cfg = ClutterConfig {
+        fixed_sizes: true,
+        full_masks: true,
+        ..ClutterConfig::default()
+    };
+    let clutter = if args.clutter_count > 0 {
+        let g = Arc::new(ClutterGenerator::new(
+            corpus.clone(),
+            clutter_cfg.clone(),
+            args.seed,
+        )?);
+        let mut writer = BopWriter::create(
+            args.out.join("clutter"),
+            BopWriteOptions {
+                depth_scale: 0.1,
+                ..BopWriteOptions::default()
+            },
+        )?;
+        let bar = progress(args.clutter_count, "clutter");
+        let mut counts = Stats::default();
+        for s in Prefetcher::new(0, Some(args.clutter_count), workers, 2, move |i| g.scene(i)) {
+            let s = s?;
+            writer.add_clutter(&s)?;
+            counts.0.push(s.objects.len() as f64);
+            used.extend(s.objects.iter().map(|o| o.object.id.clone()));
+            bar.inc(1);
+        }
+        bar.finish();
+        let w = writer.finish()?;
+        json!({"folder": "clutter", "images": w.images, "models": w.objects.len(), "objects_per_image": counts.summary(), "config": clutter_cfg})
+    } else {
+        Value::Null
+    };
     let manifest = json!({
         "config": config,
         "corpus": corpus.info(),
         "objects_used": used,
         "noback": {"folder": "noback", "images": noback.images, "objects": noback.objects, "inliers": inliers.summary(), "observed_voxels": voxels.summary()},
         "room": {"folder": "room", "images": room.images, "objects": room.objects, "inlier_rate": rates.summary(), "below_5_percent": below5, "scene_points": points.summary()},
+        "clutter": clutter,
         "units": "BOP files in mm; 1 normalised object unit = 100 mm",
     });
     write_manifest(&args.out.join("manifest.json"), &manifest)?;

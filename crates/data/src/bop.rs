@@ -12,7 +12,12 @@
 //!   `<scene>/mask/{im_id:06}_{gt_idx:06}.png` (full silhouette),
 //!   `<scene>/mask_visib/{im_id:06}_{gt_idx:06}.png`;
 //! - `<root>/models/obj_{obj_id:06}.ply` in mm and `models_info.json` (`diameter`, `min_*`,
-//!   `size_*`), plus `ic_object_ids.json` mapping BOP ids to our corpus ids.
+//!   `size_*`), plus `ic_object_ids.json` mapping BOP ids to our corpus ids;
+//! - `<root>/test_targets_bop19.json`: what to find in each image (`scene_id`, `im_id`,
+//!   `obj_id`, `inst_count`); read when present, else every annotated object is a target.
+//!
+//! Cluttered scenes ([`BopWriter::add_clutter`]) are written in millimetres with every object
+//! annotated, each model at its size in the scene (one object at two sizes is two models).
 //!
 //! **Units.** Our scenes are in normalised object units; BOP files are in millimetres. The
 //! writer uses one fixed factor, [`BopWriteOptions::unit_mm`], default [`ROOM_UNIT_MM`] = 100
@@ -472,6 +477,16 @@ pub struct BopInstance {
     pub obj_id: u32,
 }
 
+/// One entry of `test_targets_bop19.json`: find `inst_count` instances of `obj_id` in the
+/// image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct BopTarget {
+    pub scene_id: u32,
+    pub im_id: u32,
+    pub obj_id: u32,
+    pub inst_count: usize,
+}
+
 struct GtEntry {
     rotation: [[f64; 3]; 3],
     translation_mm: [f64; 3],
@@ -511,6 +526,7 @@ pub struct BopDataset {
     obj_index: HashMap<u32, usize>,
     scenes: BTreeMap<u32, SceneData>,
     instances: Vec<BopInstance>,
+    targets: Vec<BopTarget>,
 }
 
 /// The largest BOP JSON file read (`scene_gt.json` of a 1000-image scene with 20 objects each
@@ -549,6 +565,45 @@ fn numbers<const K: usize>(
 fn im_key(k: &str, path: &Path) -> Result<u32, DataError> {
     k.parse()
         .map_err(|_| DataError::json(path, format!("key {k:?} is not an image id")))
+}
+
+/// Reads a `test_targets_bop19.json`: a list of `{scene_id, im_id, obj_id, inst_count}`; entries
+/// of scenes that are not in the split folder are skipped (the file covers a whole dataset).
+fn read_targets(
+    path: &Path,
+    scenes: &BTreeMap<u32, SceneData>,
+) -> Result<Vec<BopTarget>, DataError> {
+    let v = read_json(path)?;
+    let list = v
+        .as_array()
+        .ok_or_else(|| DataError::json(path, "expected a list of targets"))?;
+    let mut out = Vec::new();
+    for (k, e) in list.iter().enumerate() {
+        let field = |name: &str| -> Result<u64, DataError> {
+            e.get(name).and_then(Value::as_u64).ok_or_else(|| {
+                DataError::json(path, format!("[{k}].{name}: missing or not a whole number"))
+            })
+        };
+        let to_u32 = |name: &str| -> Result<u32, DataError> {
+            u32::try_from(field(name)?)
+                .map_err(|_| DataError::json(path, format!("[{k}].{name}: too large")))
+        };
+        let t = BopTarget {
+            scene_id: to_u32("scene_id")?,
+            im_id: to_u32("im_id")?,
+            obj_id: to_u32("obj_id")?,
+            inst_count: field("inst_count")?.min(1 << 16) as usize,
+        };
+        if t.inst_count == 0 {
+            return Err(DataError::json(path, format!("[{k}].inst_count: must be ≥ 1")));
+        }
+        if scenes.contains_key(&t.scene_id) {
+            out.push(t);
+        }
+    }
+    out.sort_by_key(|t| (t.scene_id, t.im_id, t.obj_id));
+    out.dedup_by_key(|t| (t.scene_id, t.im_id, t.obj_id));
+    Ok(out)
 }
 
 impl BopDataset {
@@ -657,6 +712,25 @@ impl BopDataset {
                 detail: "no annotated instance in any scene".into(),
             });
         }
+        let targets_path = root.join(TEST_TARGETS_FILE);
+        let targets = if targets_path.is_file() {
+            read_targets(&targets_path, &scenes)?
+        } else {
+            // Every annotated object of every image, with its instance count.
+            let mut counts: BTreeMap<(u32, u32, u32), usize> = BTreeMap::new();
+            for i in &instances {
+                *counts.entry((i.scene_id, i.im_id, i.obj_id)).or_default() += 1;
+            }
+            counts
+                .into_iter()
+                .map(|((scene_id, im_id, obj_id), inst_count)| BopTarget {
+                    scene_id,
+                    im_id,
+                    obj_id,
+                    inst_count,
+                })
+                .collect()
+        };
         Ok(BopDataset {
             root,
             split: split.to_string(),
@@ -664,6 +738,7 @@ impl BopDataset {
             obj_index,
             scenes,
             instances,
+            targets,
         })
     }
 
@@ -683,6 +758,26 @@ impl BopDataset {
     /// Every annotated instance, by scene, image, then annotation order.
     pub fn instances(&self) -> &[BopInstance] {
         &self.instances
+    }
+
+    /// What to find: the entries of `<root>/test_targets_bop19.json` whose scene is in the
+    /// split folder, or (without that file) every annotated object of every image with its
+    /// number of instances; by scene, image, object.
+    pub fn targets(&self) -> &[BopTarget] {
+        &self.targets
+    }
+
+    /// The indices in [`BopDataset::instances`] of the annotated instances of `target`'s
+    /// object in its image (empty when none is annotated).
+    pub fn instances_of(&self, target: &BopTarget) -> Vec<usize> {
+        self.instances
+            .iter()
+            .enumerate()
+            .filter(|(_, i)| {
+                (i.scene_id, i.im_id, i.obj_id) == (target.scene_id, target.im_id, target.obj_id)
+            })
+            .map(|(k, _)| k)
+            .collect()
     }
 
     pub fn len(&self) -> usize {

@@ -553,3 +553,71 @@ fn bad_configurations_are_typed_errors() {
     assert!(Corpus::procedural(0, Split::Train, 0, light()).is_err());
     assert!("valid".parse::<Split>().is_err());
 }
+
+#[test]
+fn bop_round_trip_of_clutter_scenes_keeps_every_object_and_the_targets() {
+    let objects = corpus(5, Split::Test);
+    let cfg = ic_data::ClutterConfig {
+        fixed_sizes: true,
+        full_masks: true,
+        sensor: None,
+        multi_target_probability: 1.0,
+        target_copies: (2, 2),
+        object_count: (3, 4),
+        ..ic_data::ClutterConfig::default().with_resolution(160, 120)
+    };
+    let g = ic_data::ClutterGenerator::new(objects, cfg, 12).unwrap();
+    let scenes: Vec<ic_data::ClutterScene> = (0..2).map(|i| g.scene(i).unwrap()).collect();
+    let dir = tempfile::tempdir().unwrap();
+    let mut w = BopWriter::create(
+        dir.path(),
+        BopWriteOptions {
+            depth_scale: 0.1,
+            ..BopWriteOptions::default()
+        },
+    )
+    .unwrap();
+    for s in &scenes {
+        w.add_clutter(s).unwrap();
+    }
+    w.finish().unwrap();
+    let ds = BopDataset::open(dir.path(), "test", light()).unwrap();
+    // Every placed object is annotated, two or more per image.
+    let total: usize = scenes.iter().map(|s| s.objects.len()).sum();
+    assert_eq!(ds.len(), total);
+    let targets = ds.targets();
+    assert_eq!(targets.len(), 2, "{targets:?}");
+    let mut k = 0;
+    for (im, s) in scenes.iter().enumerate() {
+        let t = targets[im];
+        assert_eq!((t.scene_id, t.im_id), (0, im as u32));
+        // Both copies of the target count when each shows at least a tenth of itself.
+        let shown = s
+            .targets()
+            .filter(|o| {
+                let all = o.full_mask.as_ref().unwrap().data.iter().filter(|&&b| b).count();
+                o.visible_pixels > 0 && o.visible_pixels as f64 >= 0.1 * all as f64
+            })
+            .count();
+        assert_eq!(t.inst_count, shown);
+        assert_eq!(ds.instances_of(&t).len(), 2, "the target's two copies are annotated");
+        for o in &s.objects {
+            let r = ds.load(k, &BopLoadOptions::default()).unwrap();
+            k += 1;
+            assert_eq!(r.mask_visib, s.mask(o.instance_id));
+            assert_eq!(&r.mask_all, o.full_mask.as_ref().unwrap());
+            // The pose in the re-normalised model's units: compare in metres.
+            let scale_m = r.normalisation.scale / 1000.0;
+            let t_m = r.pose.translation * scale_m;
+            let truth = o.pose;
+            // The model re-normalised from mm may shift its centre; the rotation is exact.
+            assert!(r.pose.rotation_angle_to(&truth) < 1e-6);
+            let centre_m = truth.rotation * (r.normalisation.centre / 1000.0);
+            assert!(
+                (t_m - (truth.translation + centre_m)).length() < 1e-4,
+                "{t_m:?} vs {:?}",
+                truth.translation
+            );
+        }
+    }
+}

@@ -173,3 +173,81 @@ fn a_scene_whose_only_object_is_not_the_model_is_not_found() {
         assert_eq!(json_stdout(&o)["kind"], "not_found");
     }
 }
+
+#[test]
+fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
+    use ic_data::bop::{BopWriteOptions, BopWriter};
+    use ic_data::{ClutterConfig, ClutterGenerator, Corpus, CorpusOptions, Split};
+    let dir = tempfile::tempdir().unwrap();
+    let corpus = Arc::new(
+        Corpus::procedural(4, Split::Test, 21, CorpusOptions::default()).unwrap(),
+    );
+    // Two images, each with two copies of the target and two or three other objects.
+    let cfg = ClutterConfig {
+        fixed_sizes: true,
+        full_masks: true,
+        multi_target_probability: 1.0,
+        target_copies: (2, 2),
+        object_count: (4, 5),
+        longest_side_m: (0.12, 0.2),
+        distance_m: (0.5, 0.6),
+        ..ClutterConfig::default().with_resolution(320, 240)
+    };
+    let g = ClutterGenerator::new(corpus, cfg, 5).unwrap();
+    let root = dir.path().join("clutter-bop");
+    let mut w = BopWriter::create(
+        &root,
+        BopWriteOptions {
+            depth_scale: 0.1,
+            ..BopWriteOptions::default()
+        },
+    )
+    .unwrap();
+    for i in 0..2 {
+        w.add_clutter(&g.scene(i).unwrap()).unwrap();
+    }
+    w.finish().unwrap();
+    let out = dir.path().join("eval");
+    let o = check(
+        &[
+            "eval", "--dataset", s(&root), "--gt-mask", "--out", s(&out), "--json", "--seed", "3",
+        ],
+        0,
+        &[],
+    );
+    let report = json_stdout(&o);
+    assert_eq!(report["mode"], "dataset");
+    // Every true instance of every target has a line (two per image here).
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(out.join("per_image.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let targets: Vec<serde_json::Value> = serde_json::from_str(
+        &std::fs::read_to_string(root.join("test_targets_bop19.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(targets.len(), 2);
+    for t in &targets {
+        let n = lines
+            .iter()
+            .filter(|l| l["im_id"] == t["im_id"] && l["obj_id"] == t["obj_id"])
+            .count();
+        assert_eq!(n, 2, "two lines for the two copies of {t}");
+    }
+    // The BOP CSV: one time per image on every row of it.
+    let csv = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.extension().is_some_and(|e| e == "csv"))
+        .expect("a BOP results CSV");
+    let text = std::fs::read_to_string(csv).unwrap();
+    let mut time_of = std::collections::HashMap::new();
+    for row in text.lines().skip(1) {
+        let cols: Vec<&str> = row.split(',').collect();
+        assert_eq!(cols.len(), 7, "{row}");
+        let t = time_of.entry(cols[1].to_string()).or_insert(cols[6].to_string());
+        assert_eq!(*t, cols[6], "image {} has two times", cols[1]);
+    }
+    assert!(!time_of.is_empty());
+}

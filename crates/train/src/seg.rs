@@ -252,9 +252,16 @@ pub struct TrainArgs {
 pub struct EvalArgs {
     #[arg(long)]
     pub model: PathBuf,
+    /// `room` (one object in the cube room; the network's best instance against its mask) or
+    /// `clutter` (every object's instance, `ic_eval::instances`: target found rate, recall,
+    /// matched IoU, over- and under-segmentation), at 640×480.
+    #[arg(long, default_value = "room")]
+    pub scenes: String,
+    /// Room scenes: a folder of meshes with numeric stems; clutter scenes: a folder with
+    /// `split.json` or a weighted mixture (as for train-pose).
     #[arg(long)]
     pub objects: PathBuf,
-    /// `test` (800–999) or `val` (750–799).
+    /// `test` (800–999) or `val` (750–799); clutter scenes: the split of the objects' split file.
     #[arg(long, default_value = "test")]
     pub split: String,
     #[arg(long, default_value_t = 300)]
@@ -499,25 +506,33 @@ pub fn evaluate_instances(
     seg: &Segmenter,
     scenes: &[ClutterScene],
 ) -> Result<ic_eval::instances::InstanceSummary> {
-    let mut matches = Vec::with_capacity(scenes.len());
-    for s in scenes {
-        let found = seg.instances(&s.depth, &s.intrinsics)?;
-        let area = (s.intrinsics.width as f64 * s.intrinsics.height as f64) / (640.0 * 480.0);
-        let min = (MIN_TRUE_PIXELS_640 * area).round().max(1.0) as usize;
-        let truth: Vec<Mask> = s
-            .objects
-            .iter()
-            .enumerate()
-            .filter(|(i, o)| *i == 0 || o.visible_pixels >= min)
-            .map(|(_, o)| s.mask(o.instance_id))
-            .collect();
-        let pred: Vec<&Mask> = found.iter().map(|i| &i.mask).collect();
-        let truth: Vec<&Mask> = truth.iter().collect();
-        matches.push(
-            ic_eval::instances::match_instances(&pred, &truth).map_err(|e| anyhow::anyhow!(e))?,
-        );
-    }
+    let matches = scenes
+        .iter()
+        .map(|s| scene_instances(seg, s))
+        .collect::<Result<Vec<_>>>()?;
     Ok(ic_eval::instances::summarise(&matches))
+}
+
+/// The network's instances in one clutter scene against its true instances (the target's
+/// first instance first, then every object with at least [`MIN_TRUE_PIXELS_640`] visible
+/// pixels, scaled with the image area).
+pub fn scene_instances(
+    seg: &Segmenter,
+    s: &ClutterScene,
+) -> Result<ic_eval::instances::InstanceMatch> {
+    let found = seg.instances(&s.depth, &s.intrinsics)?;
+    let area = (s.intrinsics.width as f64 * s.intrinsics.height as f64) / (640.0 * 480.0);
+    let min = (MIN_TRUE_PIXELS_640 * area).round().max(1.0) as usize;
+    let truth: Vec<Mask> = s
+        .objects
+        .iter()
+        .enumerate()
+        .filter(|(i, o)| *i == 0 || o.visible_pixels >= min)
+        .map(|(_, o)| s.mask(o.instance_id))
+        .collect();
+    let pred: Vec<&Mask> = found.iter().map(|i| &i.mask).collect();
+    let truth: Vec<&Mask> = truth.iter().collect();
+    ic_eval::instances::match_instances(&pred, &truth).map_err(|e| anyhow::anyhow!(e))
 }
 
 /// [`train`] on given corpora, optionally starting from the weights of `init`.
@@ -731,6 +746,12 @@ impl Task for SegTask {
 /// `<model>.eval-<split>.json`). RAYON_NUM_THREADS (`--threads`) is the caller's to set.
 pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
     let mut seg = Segmenter::load(&args.model)?;
+    if args.scenes == "clutter" {
+        return eval_clutter(args, &seg);
+    }
+    if args.scenes != "room" {
+        bail!("--scenes {:?}: expected room or clutter", args.scenes);
+    }
     if let Some(px) = args.depth_refine_px {
         seg.config_mut().post.depth_refine_px = px;
     }
@@ -803,6 +824,64 @@ pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
         PathBuf::from(p)
     });
     crate::write_atomic(&out, text.as_bytes())?;
+    tracing::info!("written {}", out.display());
+    Ok(report)
+}
+
+/// `eval-seg --scenes clutter`: every instance of `args.count` cluttered scenes (640×480,
+/// seed `args.seed`, objects of `args.split`).
+fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
+    let text = args
+        .objects
+        .to_str()
+        .with_context(|| format!("--objects {}: not UTF-8", args.objects.display()))?;
+    let spec: crate::objects::ObjectsSpec = text.parse()?;
+    let split: Split = args.split.parse()?;
+    let corpus = crate::pose::open_objects(&spec, split)?;
+    let cfg = ClutterConfig {
+        fixed_sizes: true,
+        ..ClutterConfig::default()
+    };
+    let generator = Arc::new(ClutterGenerator::new(corpus, cfg.clone(), args.seed)?);
+    tracing::info!(
+        "seed {}; {} clutter scenes of the {} split at 640×480",
+        args.seed,
+        args.count,
+        args.split
+    );
+    let scenes = Prefetcher::new(0, Some(args.count), 1, 2, move |i| generator.scene(i));
+    let bar = ProgressBar::new(args.count);
+    let mut matches = Vec::new();
+    let mut seconds = Vec::new();
+    for (i, s) in scenes.enumerate() {
+        let s = s?;
+        let t = Instant::now();
+        matches.push(scene_instances(seg, &s)?);
+        seconds.push(t.elapsed().as_secs_f64());
+        bar.set_position(i as u64 + 1);
+        if (i + 1) % 50 == 0 && !crate::interactive() {
+            tracing::info!("{}/{} scenes", i + 1, args.count);
+        }
+    }
+    bar.finish_and_clear();
+    let summary = ic_eval::instances::summarise(&matches);
+    let report = serde_json::json!({
+        "model": args.model,
+        "scenes": "clutter",
+        "split": args.split,
+        "seed": args.seed,
+        "resolution": [640, 480],
+        "clutter": cfg,
+        "config": seg.config(),
+        "instances": summary,
+        "seconds_median": ic_eval::median(&seconds),
+    });
+    let out = args.out.clone().unwrap_or_else(|| {
+        let mut p = args.model.clone().into_os_string();
+        p.push(format!(".eval-clutter-{}.json", args.split));
+        PathBuf::from(p)
+    });
+    crate::write_atomic(&out, serde_json::to_string_pretty(&report)?.as_bytes())?;
     tracing::info!("written {}", out.display());
     Ok(report)
 }
