@@ -1154,15 +1154,25 @@ impl Pipeline {
             return Err(first_error
                 .unwrap_or_else(|| PipelineError::not_found("no instance could be registered")));
         }
+        // Best first: the verdict (ok, uncertain, not found), then the confidence, then the
+        // raw render-and-compare score.
         let key = |r: &Registration| {
+            let verdict = match r.verdict {
+                Verdict::Ok => 2,
+                Verdict::Uncertain => 1,
+                Verdict::NotFound => 0,
+            };
             (
-                r.verdict != Verdict::NotFound,
+                verdict,
+                r.confidence,
                 r.verification.map_or(r.confidence, |v| v.score),
             )
         };
         done.sort_by(|a, b| {
             let (ka, kb) = (key(a), key(b));
-            kb.0.cmp(&ka.0).then(kb.1.total_cmp(&ka.1))
+            kb.0.cmp(&ka.0)
+                .then(kb.1.total_cmp(&ka.1))
+                .then(kb.2.total_cmp(&ka.2))
         });
         if all {
             let mut kept: Vec<Registration> = Vec::new();
