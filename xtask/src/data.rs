@@ -9,9 +9,8 @@ use clap::{Args, ValueEnum};
 use ic_data::bop::{BopWriteOptions, BopWriter};
 use ic_data::export::{write_object_case, write_room_case};
 use ic_data::{
-    ClutterConfig, ClutterGenerator,
-    Corpus, CorpusOptions, FolderSplit, ObjectSampleConfig, ObjectSampleGenerator, OnBadMesh,
-    Prefetcher, RoomSampleConfig, RoomSampleGenerator, Split,
+    ClutterConfig, ClutterGenerator, Corpus, CorpusOptions, FolderSplit, ObjectSampleConfig,
+    ObjectSampleGenerator, OnBadMesh, Prefetcher, RoomSampleConfig, RoomSampleGenerator, Split,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{Value, json};

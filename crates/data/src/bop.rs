@@ -595,7 +595,10 @@ fn read_targets(
             inst_count: field("inst_count")?.min(1 << 16) as usize,
         };
         if t.inst_count == 0 {
-            return Err(DataError::json(path, format!("[{k}].inst_count: must be ≥ 1")));
+            return Err(DataError::json(
+                path,
+                format!("[{k}].inst_count: must be ≥ 1"),
+            ));
         }
         if scenes.contains_key(&t.scene_id) {
             out.push(t);

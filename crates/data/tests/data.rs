@@ -595,12 +595,23 @@ fn bop_round_trip_of_clutter_scenes_keeps_every_object_and_the_targets() {
         let shown = s
             .targets()
             .filter(|o| {
-                let all = o.full_mask.as_ref().unwrap().data.iter().filter(|&&b| b).count();
+                let all = o
+                    .full_mask
+                    .as_ref()
+                    .unwrap()
+                    .data
+                    .iter()
+                    .filter(|&&b| b)
+                    .count();
                 o.visible_pixels > 0 && o.visible_pixels as f64 >= 0.1 * all as f64
             })
             .count();
         assert_eq!(t.inst_count, shown);
-        assert_eq!(ds.instances_of(&t).len(), 2, "the target's two copies are annotated");
+        assert_eq!(
+            ds.instances_of(&t).len(),
+            2,
+            "the target's two copies are annotated"
+        );
         for o in &s.objects {
             let r = ds.load(k, &BopLoadOptions::default()).unwrap();
             k += 1;

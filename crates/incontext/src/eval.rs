@@ -39,7 +39,7 @@ use crate::pipeline::{Object, Pipeline, PipelineError, PipelineOptions, Registra
 
 /// Flags of `incontext eval`.
 #[derive(clap::Args, Debug, Clone, serde::Serialize)]
-#[command(group(clap::ArgGroup::new("input").required(true).args(["dataset", "cases"])))]
+#[command(group(clap::ArgGroup::new("input").required(true).args(["dataset", "cases", "frames"])))]
 pub struct EvalArgs {
     /// A BOP dataset (models/ and SPLIT/) or a `cargo xtask gen-data` folder (noback/,
     /// room/).
@@ -48,6 +48,14 @@ pub struct EvalArgs {
     /// A folder of registration cases written by `cargo xtask export-cases`.
     #[arg(long)]
     pub cases: Option<PathBuf>,
+    /// Real frames without ground truth: a folder with `model.ply` (mm), `camera.json` and
+    /// depth PNGs in `*/depth/`. Each frame is registered as `register` and `register --all`
+    /// do, and each pose judged by rendering it against the depth map (`--tolerance-mm`).
+    #[arg(long)]
+    pub frames: Option<PathBuf>,
+    /// --frames: a rendered pixel agrees with the depth map within this many millimetres.
+    #[arg(long, default_value_t = 10.0)]
+    pub tolerance_mm: f64,
     /// The BOP split folder (--dataset).
     #[arg(long, default_value = "test")]
     pub split: String,
@@ -255,10 +263,20 @@ pub fn case_seed(seed: u64, name: &str) -> u64 {
 
 pub fn run(args: &EvalArgs, seed: u64) -> Result<Value> {
     let methods = parse_methods(&args.methods)?;
-    match (&args.dataset, &args.cases) {
-        (Some(d), None) => run_dataset(args, d, &methods, seed),
-        (None, Some(c)) => run_cases(args, c, &methods, seed),
-        _ => Err(CliError::input("give exactly one of --dataset and --cases")),
+    match (&args.dataset, &args.cases, &args.frames) {
+        (Some(d), None, None) => run_dataset(args, d, &methods, seed),
+        (None, Some(c), None) => run_cases(args, c, &methods, seed),
+        (None, None, Some(f)) => {
+            let methods = if args.methods.is_empty() {
+                parse_methods(&["ours-softmax-verify".into()])?
+            } else {
+                methods
+            };
+            run_frames(args, f, &methods, seed)
+        }
+        _ => Err(CliError::input(
+            "give exactly one of --dataset, --cases and --frames",
+        )),
     }
 }
 
@@ -732,9 +750,9 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                         &first.intrinsics,
                         cseed,
                     ) {
-                        Ok(found) => estimates.extend(
-                            found.into_iter().take(target.inst_count).map(Ok),
-                        ),
+                        Ok(found) => {
+                            estimates.extend(found.into_iter().take(target.inst_count).map(Ok))
+                        }
                         Err(e) => estimates.push(Err(e)),
                     }
                 } else {
@@ -759,7 +777,8 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                         (0..samples.len())
                             .filter(|&g| claimed[g].is_none())
                             .min_by(|&a, &b| {
-                                let d = |g: usize| object.add_s(&r.pose_normalised, &samples[g].pose);
+                                let d =
+                                    |g: usize| object.add_s(&r.pose_normalised, &samples[g].pose);
                                 d(a).total_cmp(&d(b))
                             })
                     };
@@ -947,4 +966,171 @@ mod tests {
         assert_ne!(case_seed(3, "case_00001"), case_seed(3, "case_00002"));
         assert_ne!(case_seed(3, "case_00001"), case_seed(4, "case_00001"));
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// --frames
+
+/// A pose agrees with a real frame when at least this fraction of its visible rendered pixels
+/// lie within the tolerance of the observed depth …
+pub const FRAME_AGREEMENT: f64 = 0.8;
+/// … and less than this fraction lies in front of the observed surface.
+pub const FRAME_IN_FRONT: f64 = 0.05;
+/// … and at least this many of its rendered pixels are visible.
+pub const FRAME_MIN_VISIBLE: usize = 50;
+
+/// The depth PNGs of a frames folder: `<dir>/*/depth/*.png`, sorted.
+fn frame_files(dir: &Path) -> Result<Vec<PathBuf>> {
+    let read = |d: &Path| -> Result<Vec<PathBuf>> {
+        let mut v: Vec<PathBuf> = std::fs::read_dir(d)
+            .map_err(|e| CliError::input(format!("{}: cannot list: {e}", d.display())))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .collect();
+        v.sort();
+        Ok(v)
+    };
+    let mut out = Vec::new();
+    for sub in read(dir)?.into_iter().filter(|p| p.join("depth").is_dir()) {
+        out.extend(
+            read(&sub.join("depth"))?
+                .into_iter()
+                .filter(|p| p.extension().is_some_and(|e| e.eq_ignore_ascii_case("png"))),
+        );
+    }
+    if out.is_empty() {
+        return Err(CliError::input(format!(
+            "{}: no depth PNG in */depth/ (expected model.ply, camera.json and SCENE/depth/*.png)",
+            dir.display()
+        )));
+    }
+    Ok(out)
+}
+
+fn run_frames(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Result<Value> {
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("eval-frames"));
+    if !(args.tolerance_mm.is_finite() && args.tolerance_mm > 0.0) {
+        return Err(CliError::input(format!(
+            "--tolerance-mm must be positive, got {}",
+            args.tolerance_mm
+        )));
+    }
+    let model_path = dir.join("model.ply");
+    let files = frame_files(dir)?;
+    let first = files[0].clone();
+    let camera = inputs::read_camera(&dir.join("camera.json"), || inputs::depth_size(&first))?;
+    let k = camera.intrinsics;
+    let object = Object::from_mesh(inputs::read_mesh(&model_path)?, seed)
+        .map_err(|e| e.context(model_path.display()))?;
+    let mesh = object
+        .mesh
+        .clone()
+        .ok_or_else(|| CliError::internal("the object has no mesh"))?;
+    let scale = object.normalisation.scale;
+    inputs::create_dir(&out)?;
+    let mut pipelines = Pipelines::load(
+        methods,
+        args.pose_model.as_deref(),
+        args.seg_model.as_deref(),
+        true,
+        args.pipeline_options(),
+    )?;
+    let tol = args.tolerance_mm;
+    let judge = |r: &Registration, depth: &ic_geometry::DepthImage| -> Result<Value> {
+        let a = crate::overlay::depth_agreement(&mesh, &r.pose_normalised, scale, &k, depth, tol)?;
+        let pass = a.visible_pixels >= FRAME_MIN_VISIBLE
+            && a.agreement >= FRAME_AGREEMENT
+            && a.in_front < FRAME_IN_FRONT;
+        Ok(json!({
+            "pose": r.pose, "confidence": r.confidence, "verdict": r.verdict,
+            "agreement": a, "agrees": pass,
+        }))
+    };
+    let mut lines = Vec::new();
+    let mut summary = serde_json::Map::new();
+    for m in methods {
+        let pipeline = pipelines.get(m);
+        let (mut best_pass, mut all_found, mut all_pass, mut frames_all_ok) = (0, 0, 0, 0);
+        let mut seconds = Vec::new();
+        for path in &files {
+            let depth = inputs::read_depth_mm(path, &camera)?;
+            let name = path.strip_prefix(dir).unwrap_or(path).display().to_string();
+            let fseed = case_seed(seed, &name);
+            let clock = Instant::now();
+            let best = pipeline.register_depth(&object, &depth, &k, None, fseed);
+            let best_seconds = clock.elapsed().as_secs_f64();
+            seconds.push(best_seconds);
+            let all = pipeline.register_depth_all(&object, &depth, &k, fseed)?;
+            let best_json = match &best {
+                Ok(r) => {
+                    let j = judge(r, &depth)?;
+                    best_pass += usize::from(j["agrees"] == json!(true));
+                    j
+                }
+                Err(e) => json!({"error": e.message()}),
+            };
+            let all_json: Vec<Value> = all
+                .iter()
+                .map(|r| judge(r, &depth))
+                .collect::<Result<_>>()?;
+            let passing = all_json
+                .iter()
+                .filter(|j| j["agrees"] == json!(true))
+                .count();
+            all_found += all.len();
+            all_pass += passing;
+            frames_all_ok += usize::from(!all.is_empty() && passing == all.len());
+            // The overlay: every instance found, the best one's mask outlined.
+            let mut union = ic_geometry::Mask::filled(k.width, k.height, false);
+            for r in &all {
+                let s = crate::overlay::render_mask(&mesh, &r.pose_normalised, &k)?;
+                for (a, b) in union.data.iter_mut().zip(&s.data) {
+                    *a |= *b;
+                }
+            }
+            let best_mask = match &best {
+                Ok(r) => Some(crate::overlay::render_mask(&mesh, &r.pose_normalised, &k)?),
+                Err(_) => None,
+            };
+            let png = out.join(format!(
+                "{}_{}.png",
+                m.name,
+                name.replace(['/', '\\'], "_").trim_end_matches(".png")
+            ));
+            crate::overlay::write_rgb_png(
+                &png,
+                k.width,
+                k.height,
+                &crate::overlay::overlay_rgb(&depth, &union, best_mask.as_ref()),
+            )?;
+            lines.push(
+                json!({"frame": name, "method": m.name, "seconds": best_seconds, "best": best_json, "all": all_json, "overlay": png})
+                    .to_string(),
+            );
+            tracing::info!(frame = %name, method = %m.name, best_agrees = %best_json["agrees"], found = all.len(), agreeing = passing, "frame");
+        }
+        summary.insert(
+            m.name.clone(),
+            json!({
+                "frames": files.len(),
+                "best_agrees": best_pass,
+                "instances_found": all_found,
+                "instances_agreeing": all_pass,
+                "frames_where_every_instance_agrees": frames_all_ok,
+                "seconds_median": ic_eval::median(&seconds),
+            }),
+        );
+    }
+    write_lines(&out.join("frames.jsonl"), &lines)?;
+    let report = json!({
+        "command": "eval", "mode": "frames", "seed": seed, "frames": dir, "out": out,
+        "tolerance_mm": tol,
+        "rule": format!("a pose agrees when ≥ {FRAME_AGREEMENT} of its visible rendered pixels are within the tolerance of the depth, < {FRAME_IN_FRONT} lie in front of it, and ≥ {FRAME_MIN_VISIBLE} are visible"),
+        "networks": pipelines.describe(),
+        "methods": summary,
+    });
+    inputs::write_json(&out.join("summary.json"), &report)?;
+    Ok(report)
 }

@@ -25,6 +25,79 @@ pub fn render_mask(mesh: &Arc<Mesh>, pose: &Pose, intrinsics: &Intrinsics) -> Re
     Ok(view.mask(1))
 }
 
+/// How a pose agrees with a real depth map that has no ground truth: the model rendered at
+/// the pose, compared pixel by pixel with the observed depth (both in the depth map's units).
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct DepthAgreement {
+    /// Pixels the rendered model covers.
+    pub model_pixels: usize,
+    /// Of those, the ones not hidden: the observed surface is not in front of the model by
+    /// more than the tolerance (a pixel without a return counts as not hidden).
+    pub visible_pixels: usize,
+    /// Fraction of the visible pixels where the observed depth is within the tolerance.
+    pub agreement: f64,
+    /// Fraction of the visible pixels where the model lies in front of the observed surface
+    /// by more than the tolerance (free space the sensor saw through).
+    pub in_front: f64,
+    /// Fraction of the visible pixels without an observed return.
+    pub missing: f64,
+}
+
+/// [`DepthAgreement`] of `mesh` (normalised, as `pose` maps it) rendered through
+/// `intrinsics` against `depth` (the same units as `pose`'s translation scaled by `scale`:
+/// rendered depth × `scale` is compared with `depth`), within `tolerance` (depth units).
+pub fn depth_agreement(
+    mesh: &Arc<Mesh>,
+    pose: &Pose,
+    scale: f64,
+    intrinsics: &Intrinsics,
+    depth: &DepthImage,
+    tolerance: f64,
+) -> Result<DepthAgreement> {
+    let scene = Scene::single(mesh.clone(), Pose::IDENTITY, 1);
+    let view = CpuRenderer::new().render(&scene, &Camera::new(*intrinsics, *pose))?;
+    let (mut model, mut visible, mut agree, mut front, mut missing) = (0, 0, 0, 0, 0);
+    for ((&zr, &id), &zo) in view
+        .depth
+        .data
+        .iter()
+        .zip(&view.instances.data)
+        .zip(&depth.data)
+    {
+        if id != 1 || zr <= 0.0 {
+            continue;
+        }
+        model += 1;
+        let zr = zr as f64 * scale;
+        let zo = zo as f64;
+        if !(zo.is_finite() && zo > 0.0) {
+            visible += 1;
+            missing += 1;
+        } else if zr <= zo + tolerance {
+            visible += 1;
+            if zr < zo - tolerance {
+                front += 1;
+            } else {
+                agree += 1;
+            }
+        }
+    }
+    let frac = |n: usize| {
+        if visible > 0 {
+            n as f64 / visible as f64
+        } else {
+            0.0
+        }
+    };
+    Ok(DepthAgreement {
+        model_pixels: model,
+        visible_pixels: visible,
+        agreement: frac(agree),
+        in_front: frac(front),
+        missing: frac(missing),
+    })
+}
+
 /// RGB8 pixels of the overlay: the depth colour-mapped (turbo-like, near blue, far red, no
 /// return black), the model's silhouette blended in magenta with a solid outline,
 /// and the segmentation mask's outline in white when given.
@@ -104,4 +177,41 @@ pub fn write_two_colour_ply(
     crate::inputs::create_parent(path)?;
     write_ply(path, &cloud, PlyEncoding::BinaryLittleEndian)?;
     Ok(())
+}
+
+#[cfg(test)]
+mod agreement_tests {
+    use super::*;
+    use ic_geometry::glam::DVec3;
+
+    #[test]
+    fn a_pose_agrees_with_its_own_depth_and_one_moved_closer_lies_in_front() {
+        let mesh = Arc::new(ic_geometry::shapes::icosphere(1.0, 2).unwrap());
+        let k = Intrinsics::new(100.0, 100.0, 39.5, 29.5, 80, 60).unwrap();
+        let pose = Pose::from_translation(DVec3::new(0.0, 0.0, 5.0));
+        let scene = Scene::single(mesh.clone(), Pose::IDENTITY, 1);
+        // The observed depth in mm, the pose in units of 10 mm.
+        let view = CpuRenderer::new()
+            .render(&scene, &Camera::new(k, pose))
+            .unwrap();
+        let depth = DepthImage {
+            width: 80,
+            height: 60,
+            data: view.depth.data.iter().map(|z| z * 10.0).collect(),
+        };
+        let same = depth_agreement(&mesh, &pose, 10.0, &k, &depth, 1.0).unwrap();
+        assert!(same.model_pixels > 100);
+        assert_eq!(same.visible_pixels, same.model_pixels);
+        assert_eq!(
+            (same.agreement, same.in_front, same.missing),
+            (1.0, 0.0, 0.0)
+        );
+        let closer = Pose::from_translation(DVec3::new(0.0, 0.0, 4.0));
+        let a = depth_agreement(&mesh, &closer, 10.0, &k, &depth, 1.0).unwrap();
+        assert!(a.in_front > 0.5, "{a:?}");
+        // Farther away: hidden behind the observed surface where it overlaps it.
+        let farther = Pose::from_translation(DVec3::new(0.0, 0.0, 8.0));
+        let a = depth_agreement(&mesh, &farther, 10.0, &k, &depth, 1.0).unwrap();
+        assert!(a.visible_pixels < a.model_pixels / 2, "{a:?}");
+    }
 }

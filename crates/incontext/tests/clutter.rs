@@ -179,9 +179,8 @@ fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
     use ic_data::bop::{BopWriteOptions, BopWriter};
     use ic_data::{ClutterConfig, ClutterGenerator, Corpus, CorpusOptions, Split};
     let dir = tempfile::tempdir().unwrap();
-    let corpus = Arc::new(
-        Corpus::procedural(4, Split::Test, 21, CorpusOptions::default()).unwrap(),
-    );
+    let corpus =
+        Arc::new(Corpus::procedural(4, Split::Test, 21, CorpusOptions::default()).unwrap());
     // Two images, each with two copies of the target and two or three other objects.
     let cfg = ClutterConfig {
         fixed_sizes: true,
@@ -210,7 +209,15 @@ fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
     let out = dir.path().join("eval");
     let o = check(
         &[
-            "eval", "--dataset", s(&root), "--gt-mask", "--out", s(&out), "--json", "--seed", "3",
+            "eval",
+            "--dataset",
+            s(&root),
+            "--gt-mask",
+            "--out",
+            s(&out),
+            "--json",
+            "--seed",
+            "3",
         ],
         0,
         &[],
@@ -246,8 +253,60 @@ fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
     for row in text.lines().skip(1) {
         let cols: Vec<&str> = row.split(',').collect();
         assert_eq!(cols.len(), 7, "{row}");
-        let t = time_of.entry(cols[1].to_string()).or_insert(cols[6].to_string());
+        let t = time_of
+            .entry(cols[1].to_string())
+            .or_insert(cols[6].to_string());
         assert_eq!(*t, cols[6], "image {} has two times", cols[1]);
     }
     assert!(!time_of.is_empty());
+}
+
+#[test]
+fn eval_frames_judges_each_pose_against_the_depth_without_ground_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    let mesh = model_mm();
+    write_mesh_ply(
+        dir.path().join("model.ply"),
+        &mesh,
+        PlyEncoding::BinaryLittleEndian,
+    )
+    .unwrap();
+    let frame = dir.path().join("scene1");
+    std::fs::create_dir_all(frame.join("depth")).unwrap();
+    let shared = Arc::new(mesh.clone());
+    render_on_table(&frame, &[(shared, on_table(&mesh, 0.0, 0.0, 0.7))]);
+    std::fs::rename(frame.join("depth.png"), frame.join("depth/0000.png")).unwrap();
+    std::fs::rename(frame.join("camera.json"), dir.path().join("camera.json")).unwrap();
+    let out = dir.path().join("out");
+    let o = check(
+        &[
+            "eval",
+            "--frames",
+            s(dir.path()),
+            "--out",
+            s(&out),
+            "--json",
+            "--seed",
+            "2",
+        ],
+        0,
+        &[],
+    );
+    let report = json_stdout(&o);
+    let m = &report["methods"]["ours-softmax-verify"];
+    assert_eq!(m["frames"], 1);
+    assert_eq!(m["best_agrees"], 1, "{report:#}");
+    let line: serde_json::Value = serde_json::from_str(
+        std::fs::read_to_string(out.join("frames.jsonl"))
+            .unwrap()
+            .lines()
+            .next()
+            .unwrap(),
+    )
+    .unwrap();
+    assert!(line["best"]["agreement"]["agreement"].as_f64().unwrap() >= 0.8);
+    assert!(std::path::Path::new(line["overlay"].as_str().unwrap()).is_file());
+    // A folder without depth maps is bad input.
+    let empty = tempfile::tempdir().unwrap();
+    check(&["eval", "--frames", s(empty.path())], 2, &["no depth PNG"]);
 }
