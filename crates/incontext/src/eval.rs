@@ -648,6 +648,9 @@ fn write_text(path: &Path, text: &str) -> Result<()> {
     .map_err(|e| CliError::input(format!("{}: cannot write: {e}", path.display())))
 }
 
+/// BOP rows of one method by (scene_id, im_id), with the image's total seconds.
+type ImageRows = BTreeMap<(u32, u32), (Vec<String>, f64)>;
+
 fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Result<Value> {
     let out = args
         .out
@@ -684,7 +687,7 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
         let mut times: BTreeMap<String, Vec<f64>> = BTreeMap::new();
         // BOP rows per method and image, written with the image's total time (BOP's rule:
         // one time per image, the same on each of its rows).
-        let mut rows: BTreeMap<String, BTreeMap<(u32, u32), (Vec<String>, f64)>> = BTreeMap::new();
+        let mut rows: BTreeMap<String, ImageRows> = BTreeMap::new();
         let mut per_image = Vec::new();
         let mut objects: BTreeMap<String, (Object, f64)> = BTreeMap::new();
         let bar = progress(n as u64, name);
@@ -927,47 +930,6 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
     )
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn methods_parse_with_defaults_and_without_duplicates() {
-        let m = parse_methods(&[]).unwrap();
-        assert_eq!(m.len(), 1);
-        assert_eq!((m[0].head, m[0].refine), (Head::Softmax, Refine::Icp));
-        let m = parse_methods(&[
-            "ours-ot".into(),
-            "ours-softmax-icp".into(),
-            "ours-ot".into(),
-        ])
-        .unwrap();
-        let names: Vec<&str> = m.iter().map(|m| m.name.as_str()).collect();
-        assert_eq!(names, ["ours-ot", "ours-softmax-icp"]);
-        assert_eq!((m[0].head, m[0].refine), (Head::Ot, Refine::None));
-        // The sweep methods verify the rotated copies like -verify, without ICP.
-        let m = parse_methods(&["ours-softmax-sweep".into(), "ours-ot-verify".into()]).unwrap();
-        assert_eq!(
-            (m[0].head, m[0].refine, m[0].rotations),
-            (Head::Softmax, Refine::None, Some(VERIFY_ROTATIONS))
-        );
-        assert_eq!(
-            (m[1].head, m[1].refine, m[1].rotations),
-            (Head::Ot, Refine::Icp, Some(VERIFY_ROTATIONS))
-        );
-        let e = parse_methods(&["o3d-fgr".into()]).unwrap_err();
-        assert_eq!(e.exit_code(), 2);
-        assert!(e.message.contains("o3d-fgr"));
-    }
-
-    #[test]
-    fn case_seeds_depend_on_the_seed_and_the_name_only() {
-        assert_eq!(case_seed(3, "case_00001"), case_seed(3, "case_00001"));
-        assert_ne!(case_seed(3, "case_00001"), case_seed(3, "case_00002"));
-        assert_ne!(case_seed(3, "case_00001"), case_seed(4, "case_00001"));
-    }
-}
-
 // ---------------------------------------------------------------------------------------------
 // --frames
 
@@ -1133,4 +1095,45 @@ fn run_frames(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Res
     });
     inputs::write_json(&out.join("summary.json"), &report)?;
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn methods_parse_with_defaults_and_without_duplicates() {
+        let m = parse_methods(&[]).unwrap();
+        assert_eq!(m.len(), 1);
+        assert_eq!((m[0].head, m[0].refine), (Head::Softmax, Refine::Icp));
+        let m = parse_methods(&[
+            "ours-ot".into(),
+            "ours-softmax-icp".into(),
+            "ours-ot".into(),
+        ])
+        .unwrap();
+        let names: Vec<&str> = m.iter().map(|m| m.name.as_str()).collect();
+        assert_eq!(names, ["ours-ot", "ours-softmax-icp"]);
+        assert_eq!((m[0].head, m[0].refine), (Head::Ot, Refine::None));
+        // The sweep methods verify the rotated copies like -verify, without ICP.
+        let m = parse_methods(&["ours-softmax-sweep".into(), "ours-ot-verify".into()]).unwrap();
+        assert_eq!(
+            (m[0].head, m[0].refine, m[0].rotations),
+            (Head::Softmax, Refine::None, Some(VERIFY_ROTATIONS))
+        );
+        assert_eq!(
+            (m[1].head, m[1].refine, m[1].rotations),
+            (Head::Ot, Refine::Icp, Some(VERIFY_ROTATIONS))
+        );
+        let e = parse_methods(&["o3d-fgr".into()]).unwrap_err();
+        assert_eq!(e.exit_code(), 2);
+        assert!(e.message.contains("o3d-fgr"));
+    }
+
+    #[test]
+    fn case_seeds_depend_on_the_seed_and_the_name_only() {
+        assert_eq!(case_seed(3, "case_00001"), case_seed(3, "case_00001"));
+        assert_ne!(case_seed(3, "case_00001"), case_seed(3, "case_00002"));
+        assert_ne!(case_seed(3, "case_00001"), case_seed(4, "case_00001"));
+    }
 }
