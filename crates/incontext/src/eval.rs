@@ -807,6 +807,8 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                             rec["errors"] = json!(e);
                             rec["confidence"] = json!(r.confidence);
                             rec["verdict"] = json!(r.verdict);
+                            rec["verification"] = json!(r.verification);
+                            rec["instance"] = json!(r.instance);
                         }
                         None => {
                             errors.entry(m.name.clone()).or_default().push(None);
@@ -1007,6 +1009,7 @@ fn run_frames(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Res
             && a.in_front < FRAME_IN_FRONT;
         Ok(json!({
             "pose": r.pose, "confidence": r.confidence, "verdict": r.verdict,
+            "verification": r.verification, "instance": r.instance,
             "agreement": a, "agrees": pass,
         }))
     };

@@ -959,10 +959,10 @@ impl Pipeline {
 
     /// Every instance of the object in `depth` (normalised units, as
     /// [`Pipeline::register_depth_normalised`]): each instance the segmentation network finds
-    /// whose size fits the model is registered, and those whose verdict is not `not_found`
-    /// are returned, best render-and-compare score (or confidence) first; two registrations
-    /// of one object (ADD-S between their poses below 0.1 of the diameter) keep the better.
-    /// An empty list when none is found.
+    /// whose size fits the model is registered, and those whose verdict is `ok` are returned,
+    /// best first (verdict, confidence, render-and-compare score); when none is `ok`, the best
+    /// `uncertain` one alone. Two registrations of one object (ADD-S between their poses below
+    /// 0.1 of the diameter) keep the better. An empty list when none is found.
     pub fn register_depth_all_normalised(
         &self,
         object: &Object,
@@ -1175,9 +1175,16 @@ impl Pipeline {
                 .then(kb.2.total_cmp(&ka.2))
         });
         if all {
+            // Every `ok` instance; when none is `ok`, the best `uncertain` one alone (a bin
+            // of parts wants confident picks: on the IC-BIN frames most `uncertain` extra
+            // instances were wrong, `docs/decisions.md`).
+            let any_ok = done.iter().any(|r| r.verdict == Verdict::Ok);
             let mut kept: Vec<Registration> = Vec::new();
             for r in done {
-                if r.verdict == Verdict::NotFound {
+                if r.verdict == Verdict::NotFound
+                    || (any_ok && r.verdict != Verdict::Ok)
+                    || (!any_ok && !kept.is_empty())
+                {
                     continue;
                 }
                 let same = kept.iter().any(|k| {
