@@ -103,14 +103,7 @@ pub struct ClutterConfig {
 impl Default for ClutterConfig {
     fn default() -> Self {
         ClutterConfig {
-            intrinsics: Intrinsics {
-                fx: 525.0,
-                fy: 525.0,
-                cx: 319.5,
-                cy: 239.5,
-                width: 640,
-                height: 480,
-            },
+            intrinsics: Intrinsics::KINECT_640X480,
             object_count: (3, 15),
             longest_side_m: (0.05, 0.30),
             distance_m: (0.4, 1.5),

@@ -23,6 +23,18 @@ fn model_mm() -> Mesh {
     }
 }
 
+/// Writes the model as `dir/model.ply` and returns it.
+fn write_model(dir: &Path) -> Mesh {
+    let mesh = model_mm();
+    write_mesh_ply(
+        dir.join("model.ply"),
+        &mesh,
+        PlyEncoding::BinaryLittleEndian,
+    )
+    .unwrap();
+    mesh
+}
+
 /// Renders `objects` (mesh, model → world pose; world z up, mm) standing on a 1.2 m table top
 /// at z = 0, seen from 750 mm by a 320×240 camera; writes depth.png (0.1 mm steps) and
 /// camera.json into `dir` and returns the world → camera pose.
@@ -77,13 +89,7 @@ fn on_table(mesh: &Mesh, x: f64, y: f64, yaw: f64) -> Pose {
 #[test]
 fn register_all_returns_each_instance_of_the_model_best_first() {
     let dir = tempfile::tempdir().unwrap();
-    let mesh = model_mm();
-    write_mesh_ply(
-        dir.path().join("model.ply"),
-        &mesh,
-        PlyEncoding::BinaryLittleEndian,
-    )
-    .unwrap();
+    let mesh = write_model(dir.path());
     let poses = [
         on_table(&mesh, -170.0, 0.0, 0.3),
         on_table(&mesh, 170.0, 40.0, 2.0),
@@ -144,12 +150,7 @@ fn register_all_returns_each_instance_of_the_model_best_first() {
 #[test]
 fn a_scene_whose_only_object_is_not_the_model_is_not_found() {
     let dir = tempfile::tempdir().unwrap();
-    write_mesh_ply(
-        dir.path().join("model.ply"),
-        &model_mm(),
-        PlyEncoding::BinaryLittleEndian,
-    )
-    .unwrap();
+    write_model(dir.path());
     // A 40 mm cube: another object, far too small to be the 200 mm model.
     let cube = ic_geometry::shapes::box_mesh(ic_geometry::glam::Vec3::splat(20.0)).unwrap();
     render_on_table(
@@ -264,13 +265,7 @@ fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
 #[test]
 fn eval_frames_judges_each_pose_against_the_depth_without_ground_truth() {
     let dir = tempfile::tempdir().unwrap();
-    let mesh = model_mm();
-    write_mesh_ply(
-        dir.path().join("model.ply"),
-        &mesh,
-        PlyEncoding::BinaryLittleEndian,
-    )
-    .unwrap();
+    let mesh = write_model(dir.path());
     let frame = dir.path().join("scene1");
     std::fs::create_dir_all(frame.join("depth")).unwrap();
     let shared = Arc::new(mesh.clone());

@@ -90,7 +90,19 @@ pub fn instances(
         height,
         data: prob.iter().map(|&p| p > pixel_threshold).collect(),
     };
-    let mut out: Vec<Instance> = connected_components(&fg)
+    ranked(connected_components(&fg), prob, width, height, min_pixels)
+}
+
+/// The pixel groups of at least `min_pixels` as instances scored by their mean probability,
+/// best first (ties: the larger first, then the earlier).
+fn ranked(
+    groups: Vec<Vec<usize>>,
+    prob: &[f32],
+    width: u32,
+    height: u32,
+    min_pixels: usize,
+) -> Vec<Instance> {
+    let mut out: Vec<Instance> = groups
         .into_iter()
         .filter(|c| c.len() >= min_pixels.max(1))
         .map(|c| {
@@ -188,24 +200,7 @@ pub fn split_instances(
             pixels[l as usize].push(i);
         }
     }
-    let mut out: Vec<Instance> = pixels
-        .into_iter()
-        .filter(|c| c.len() >= min_pixels.max(1))
-        .map(|c| {
-            let score = (c.iter().map(|&i| object[i] as f64).sum::<f64>() / c.len() as f64) as f32;
-            let mut mask = Mask::filled(width, height, false);
-            for &i in &c {
-                mask.data[i] = true;
-            }
-            Instance {
-                mask,
-                score,
-                pixels: c.len(),
-            }
-        })
-        .collect();
-    out.sort_by(|a, b| b.score.total_cmp(&a.score).then(b.pixels.cmp(&a.pixels)));
-    out
+    ranked(pixels, object, width, height, min_pixels)
 }
 
 /// The best instance whose score exceeds `score_threshold`, or
