@@ -231,6 +231,25 @@ impl BopWriter {
         Ok((scene_dir, scene_id, im_id))
     }
 
+    /// Records the camera and the annotations of one written image.
+    fn record_image(
+        &mut self,
+        (scene_id, im_id): (u32, u32),
+        k: Intrinsics,
+        gt: Vec<Value>,
+        info: Vec<Value>,
+    ) {
+        let acc = self.scenes.entry(scene_id).or_default();
+        acc.camera.insert(
+            im_id,
+            json!({"cam_K": k.k_row_major().concat(), "depth_scale": self.options.depth_scale}),
+        );
+        acc.gt.insert(im_id, Value::Array(gt));
+        acc.info.insert(im_id, Value::Array(info));
+        self.camera.get_or_insert(k);
+        self.images += 1;
+    }
+
     /// Writes one cluttered scene (metres) as one image with every placed object annotated, in
     /// placement order (the target's instances first): models at their scene size, depth at
     /// `depth_scale`, `mask_visib/` from the instance image, `mask/` from the full
@@ -255,58 +274,27 @@ impl BopWriter {
             let obj_id = self.obj_id(&o.object, unit_mm);
             let visib = scene.mask(o.instance_id);
             let all = o.full_mask.clone().unwrap_or_else(|| visib.clone());
-            ic_render::io::write_mask_png(
-                scene_dir.join(format!("mask/{im_id:06}_{g:06}.png")),
-                &all,
+            let (gt_entry, info_entry, px_visib, fract) = annotate(
+                &scene_dir,
+                (im_id, g),
+                obj_id,
+                &o.pose,
+                1000.0,
+                (&all, &visib),
+                &scene.depth,
             )?;
-            ic_render::io::write_mask_png(
-                scene_dir.join(format!("mask_visib/{im_id:06}_{g:06}.png")),
-                &visib,
-            )?;
-            let count = |m: &Mask| m.data.iter().filter(|&&b| b).count();
-            let (px_all, px_visib) = (count(&all), count(&visib));
-            let px_valid = all
-                .data
-                .iter()
-                .zip(&scene.depth.data)
-                .filter(|(m, z)| **m && **z > 0.0)
-                .count();
-            let r = o.pose.rotation_row_major();
-            let t = o.pose.translation * 1000.0;
-            gt.push(
-                json!({"cam_R_m2c": r.concat(), "cam_t_m2c": [t.x, t.y, t.z], "obj_id": obj_id}),
-            );
+            gt.push(gt_entry);
+            info.push(info_entry);
             if o.is_target {
                 target_id = Some(obj_id);
                 // BOP's rule: an instance is a target when at least 10 % of it is visible.
-                let fract = if px_all > 0 {
-                    px_visib as f64 / px_all as f64
-                } else {
-                    0.0
-                };
                 target_count += usize::from(px_visib > 0 && fract >= 0.1);
             }
-            info.push(json!({
-                "bbox_obj": mask_bbox(&all),
-                "bbox_visib": mask_bbox(&visib),
-                "px_count_all": px_all,
-                "px_count_valid": px_valid,
-                "px_count_visib": px_visib,
-                "visib_fract": if px_all > 0 { px_visib as f64 / px_all as f64 } else { 0.0 },
-            }));
         }
-        let acc = self.scenes.entry(scene_id).or_default();
-        acc.camera.insert(
-            im_id,
-            json!({"cam_K": k.k_row_major().concat(), "depth_scale": self.options.depth_scale}),
-        );
-        acc.gt.insert(im_id, Value::Array(gt));
-        acc.info.insert(im_id, Value::Array(info));
+        self.record_image((scene_id, im_id), k, gt, info);
         if let Some(obj_id) = target_id.filter(|_| target_count > 0) {
             self.targets.push((scene_id, im_id, obj_id, target_count));
         }
-        self.camera.get_or_insert(k);
-        self.images += 1;
         Ok((scene_id, im_id))
     }
 
@@ -334,49 +322,16 @@ impl BopWriter {
             &metres,
             self.options.depth_scale,
         )?;
-        ic_render::io::write_mask_png(
-            scene_dir.join(format!("mask/{im_id:06}_{:06}.png", 0)),
-            frame.mask_all,
+        let (gt, info, _, _) = annotate(
+            &scene_dir,
+            (im_id, 0),
+            obj_id,
+            &frame.pose,
+            u,
+            (frame.mask_all, frame.mask_visib),
+            frame.depth,
         )?;
-        ic_render::io::write_mask_png(
-            scene_dir.join(format!("mask_visib/{im_id:06}_{:06}.png", 0)),
-            frame.mask_visib,
-        )?;
-
-        let count = |m: &Mask| m.data.iter().filter(|&&b| b).count();
-        let px_all = count(frame.mask_all);
-        let px_visib = count(frame.mask_visib);
-        let px_valid = frame
-            .mask_all
-            .data
-            .iter()
-            .zip(&frame.depth.data)
-            .filter(|(m, z)| **m && **z > 0.0)
-            .count();
-        let r = frame.pose.rotation_row_major();
-        let t = frame.pose.translation * u;
-        let acc = self.scenes.entry(scene_id).or_default();
-        acc.camera.insert(
-            im_id,
-            json!({"cam_K": k.k_row_major().concat(), "depth_scale": self.options.depth_scale}),
-        );
-        acc.gt.insert(
-            im_id,
-            json!([{"cam_R_m2c": r.concat(), "cam_t_m2c": [t.x, t.y, t.z], "obj_id": obj_id}]),
-        );
-        acc.info.insert(
-            im_id,
-            json!([{
-                "bbox_obj": mask_bbox(frame.mask_all),
-                "bbox_visib": mask_bbox(frame.mask_visib),
-                "px_count_all": px_all,
-                "px_count_valid": px_valid,
-                "px_count_visib": px_visib,
-                "visib_fract": if px_all > 0 { px_visib as f64 / px_all as f64 } else { 0.0 },
-            }]),
-        );
-        self.camera.get_or_insert(k);
-        self.images += 1;
+        self.record_image((scene_id, im_id), k, vec![gt], vec![info]);
         self.targets.push((scene_id, im_id, obj_id, 1));
         Ok((scene_id, im_id))
     }
@@ -441,6 +396,55 @@ impl BopWriter {
             objects: names,
         })
     }
+}
+
+/// One annotated object of an image (`im_id`, its `gt_index`-th): writes its `mask/` (`all`,
+/// the full silhouette) and `mask_visib/` (`visib`) PNGs into `scene_dir` and returns its
+/// `scene_gt.json` and `scene_gt_info.json` entries, its visible pixels and visible fraction.
+/// `pose` maps the model into the camera in units of `mm_per_unit` millimetres; `depth` only
+/// says where the sensor returned.
+fn annotate(
+    scene_dir: &Path,
+    (im_id, gt_index): (u32, usize),
+    obj_id: u32,
+    pose: &Pose,
+    mm_per_unit: f64,
+    (all, visib): (&Mask, &Mask),
+    depth: &DepthImage,
+) -> Result<(Value, Value, usize, f64), DataError> {
+    ic_render::io::write_mask_png(
+        scene_dir.join(format!("mask/{im_id:06}_{gt_index:06}.png")),
+        all,
+    )?;
+    ic_render::io::write_mask_png(
+        scene_dir.join(format!("mask_visib/{im_id:06}_{gt_index:06}.png")),
+        visib,
+    )?;
+    let count = |m: &Mask| m.data.iter().filter(|&&b| b).count();
+    let (px_all, px_visib) = (count(all), count(visib));
+    let px_valid = all
+        .data
+        .iter()
+        .zip(&depth.data)
+        .filter(|(m, z)| **m && **z > 0.0)
+        .count();
+    let fract = if px_all > 0 {
+        px_visib as f64 / px_all as f64
+    } else {
+        0.0
+    };
+    let r = pose.rotation_row_major();
+    let t = pose.translation * mm_per_unit;
+    let gt = json!({"cam_R_m2c": r.concat(), "cam_t_m2c": [t.x, t.y, t.z], "obj_id": obj_id});
+    let info = json!({
+        "bbox_obj": mask_bbox(all),
+        "bbox_visib": mask_bbox(visib),
+        "px_count_all": px_all,
+        "px_count_valid": px_valid,
+        "px_count_visib": px_visib,
+        "visib_fract": fract,
+    });
+    Ok((gt, info, px_visib, fract))
 }
 
 /// BOP `models_info` of a mesh: bounding box and diameter (the largest distance between two

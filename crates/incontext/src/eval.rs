@@ -1048,13 +1048,8 @@ fn run_frames(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Res
             all_pass += passing;
             frames_all_ok += usize::from(!all.is_empty() && passing == all.len());
             // The overlay: every instance found, the best one's mask outlined.
-            let mut union = ic_geometry::Mask::filled(k.width, k.height, false);
-            for r in &all {
-                let s = crate::overlay::render_mask(&mesh, &r.pose_normalised, &k)?;
-                for (a, b) in union.data.iter_mut().zip(&s.data) {
-                    *a |= *b;
-                }
-            }
+            let poses: Vec<_> = all.iter().map(|r| r.pose_normalised).collect();
+            let union = crate::overlay::render_masks(&mesh, &poses, &k)?;
             let best_mask = match &best {
                 Ok(r) => Some(crate::overlay::render_mask(&mesh, &r.pose_normalised, &k)?),
                 Err(_) => None,

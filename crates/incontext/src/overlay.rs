@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use ic_geometry::io::{PlyEncoding, write_ply};
 use ic_geometry::{DepthImage, Intrinsics, Mask, Mesh, PointCloud, Pose, voxel_downsample_points};
-use ic_render::{Camera, CpuRenderer, Renderer, Scene, depth_colours, is_mask_edge};
+use ic_render::{Camera, CpuRenderer, Renderer, Rendering, Scene, depth_colours, is_mask_edge};
 
 use crate::error::{CliError, Result};
 
@@ -20,9 +20,26 @@ const ALIGNED_COLOUR: [u8; 3] = [230, 40, 40];
 
 /// The silhouette of `mesh` (in the frame `pose` maps from) seen through `intrinsics`.
 pub fn render_mask(mesh: &Arc<Mesh>, pose: &Pose, intrinsics: &Intrinsics) -> Result<Mask> {
+    Ok(render_at(mesh, pose, intrinsics)?.mask(1))
+}
+
+/// The union of the silhouettes of `mesh` at each of `poses` (as [`render_mask`]); nothing
+/// set when `poses` is empty.
+pub fn render_masks(mesh: &Arc<Mesh>, poses: &[Pose], intrinsics: &Intrinsics) -> Result<Mask> {
+    let mut union = Mask::filled(intrinsics.width, intrinsics.height, false);
+    for pose in poses {
+        let m = render_mask(mesh, pose, intrinsics)?;
+        for (a, b) in union.data.iter_mut().zip(&m.data) {
+            *a |= *b;
+        }
+    }
+    Ok(union)
+}
+
+/// `mesh` (instance id 1) seen from a camera at `pose` (model → camera).
+fn render_at(mesh: &Arc<Mesh>, pose: &Pose, intrinsics: &Intrinsics) -> Result<Rendering> {
     let scene = Scene::single(mesh.clone(), Pose::IDENTITY, 1);
-    let view = CpuRenderer::new().render(&scene, &Camera::new(*intrinsics, *pose))?;
-    Ok(view.mask(1))
+    Ok(CpuRenderer::new().render(&scene, &Camera::new(*intrinsics, *pose))?)
 }
 
 /// How a pose agrees with a real depth map that has no ground truth: the model rendered at
@@ -54,8 +71,7 @@ pub fn depth_agreement(
     depth: &DepthImage,
     tolerance: f64,
 ) -> Result<DepthAgreement> {
-    let scene = Scene::single(mesh.clone(), Pose::IDENTITY, 1);
-    let view = CpuRenderer::new().render(&scene, &Camera::new(*intrinsics, *pose))?;
+    let view = render_at(mesh, pose, intrinsics)?;
     let (mut model, mut visible, mut agree, mut front, mut missing) = (0, 0, 0, 0, 0);
     for ((&zr, &id), &zo) in view
         .depth

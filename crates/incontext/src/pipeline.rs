@@ -236,6 +236,17 @@ impl Object {
         sum / n.max(1) as f64
     }
 
+    /// `depth` (in the object's own units) divided by its normalisation scale: the normalised
+    /// units the networks work in.
+    pub fn normalised_depth(&self, depth: &DepthImage) -> DepthImage {
+        let inv = (1.0 / self.normalisation.scale) as f32;
+        Image {
+            width: depth.width,
+            height: depth.height,
+            data: depth.data.iter().map(|&z| z * inv).collect(),
+        }
+    }
+
     /// Normalises `mesh` (in its own units) and samples its visible surface (seeded).
     pub fn from_mesh(mut mesh: Mesh, seed: u64) -> Result<Object> {
         let clock = Instant::now();
@@ -322,6 +333,16 @@ impl Object {
             seconds: 0.0,
         })
     }
+}
+
+/// The camera is valid and `depth` has its size.
+fn check_depth_input(depth: &DepthImage, intrinsics: &Intrinsics) -> Result<()> {
+    intrinsics
+        .validate()
+        .map_err(|e| PipelineError::input(e.to_string()))?;
+    depth
+        .check_size(intrinsics.width, intrinsics.height)
+        .map_err(|e| PipelineError::input(format!("depth map: {e}")))
 }
 
 fn pca_normals(points: &[Vec3]) -> Result<Vec<Vec3>> {
@@ -882,12 +903,7 @@ impl Pipeline {
     ) -> Result<Registration> {
         self.in_pool(|| {
             let clock = Instant::now();
-            let inv = (1.0 / object.normalisation.scale) as f32;
-            let depth_n = Image {
-                width: depth.width,
-                height: depth.height,
-                data: depth.data.iter().map(|&z| z * inv).collect(),
-            };
+            let depth_n = object.normalised_depth(depth);
             self.register_depth_inner(object, &depth_n, intrinsics, mask, seed, clock)
         })
     }
@@ -923,12 +939,7 @@ impl Pipeline {
         seed: u64,
         clock: Instant,
     ) -> Result<Registration> {
-        intrinsics
-            .validate()
-            .map_err(|e| PipelineError::input(e.to_string()))?;
-        depth_n
-            .check_size(intrinsics.width, intrinsics.height)
-            .map_err(|e| PipelineError::input(format!("depth map: {e}")))?;
+        check_depth_input(depth_n, intrinsics)?;
         let seconds = StageSeconds::default();
         if let Some(m) = mask {
             m.check_size(intrinsics.width, intrinsics.height)
@@ -971,12 +982,7 @@ impl Pipeline {
         seed: u64,
     ) -> Result<Vec<Registration>> {
         self.in_pool(|| {
-            intrinsics
-                .validate()
-                .map_err(|e| PipelineError::input(e.to_string()))?;
-            depth_normalised
-                .check_size(intrinsics.width, intrinsics.height)
-                .map_err(|e| PipelineError::input(format!("depth map: {e}")))?;
+            check_depth_input(depth_normalised, intrinsics)?;
             match self.register_instances(
                 object,
                 depth_normalised,
@@ -1000,13 +1006,12 @@ impl Pipeline {
         intrinsics: &Intrinsics,
         seed: u64,
     ) -> Result<Vec<Registration>> {
-        let inv = (1.0 / object.normalisation.scale) as f32;
-        let depth_n = Image {
-            width: depth.width,
-            height: depth.height,
-            data: depth.data.iter().map(|&z| z * inv).collect(),
-        };
-        self.register_depth_all_normalised(object, &depth_n, intrinsics, seed)
+        self.register_depth_all_normalised(
+            object,
+            &object.normalised_depth(depth),
+            intrinsics,
+            seed,
+        )
     }
 
     /// The segmentation network's instances in `depth_n`, scored above its threshold, with
@@ -1025,14 +1030,7 @@ impl Pipeline {
         let best_score = found.first().map(|i| i.score);
         let mut out = Vec::new();
         for inst in found.into_iter().filter(|i| i.score > post.score_threshold) {
-            let mask = if post.depth_refine_px > 0 {
-                let band = ((post.depth_refine_px as f64 * depth_n.width as f64 / 640.0).round()
-                    as usize)
-                    .max(1);
-                ic_seg::post::refine_with_depth(&inst.mask, depth_n, band, post.depth_jump)
-            } else {
-                inst.mask
-            };
+            let mask = post.refine(inst.mask, depth_n);
             let points = intrinsics.back_project_depth(depth_n, Some(&mask))?;
             if points.len() < 3 {
                 continue;

@@ -312,13 +312,11 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
                 .mesh
                 .as_ref()
                 .ok_or_else(|| crate::CliError::internal("the object has no mesh"))?;
-            let mut model = overlay::render_mask(mesh, &registration.pose_normalised, &k)?;
-            for r in &others {
-                let m = overlay::render_mask(mesh, &r.pose_normalised, &k)?;
-                for (a, b) in model.data.iter_mut().zip(&m.data) {
-                    *a |= *b;
-                }
-            }
+            let poses: Vec<Pose> = std::iter::once(&registration)
+                .chain(&others)
+                .map(|r| r.pose_normalised)
+                .collect();
+            let model = overlay::render_masks(mesh, &poses, &k)?;
             outputs.insert("overlay".into(), json!(path));
             Some(overlay::overlay_rgb(
                 &depth,

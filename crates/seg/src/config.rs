@@ -103,6 +103,30 @@ fn default_depth_jump() -> f32 {
     0.03
 }
 
+impl PostConfig {
+    /// `min_pixels` (given for a 640×480 map) scaled to a `width`×`height` map's area.
+    pub fn min_pixels_at(&self, width: u32, height: u32) -> usize {
+        let area = (width as f64 * height as f64) / (640.0 * 480.0);
+        ((self.min_pixels as f64 * area).round() as usize).max(1)
+    }
+
+    /// `mask` snapped to the depth edges of `depth` within `depth_refine_px` (given for 640
+    /// pixels of width, scaled with the map's width); `mask` itself when the refinement is
+    /// off.
+    pub fn refine(
+        &self,
+        mask: ic_geometry::Mask,
+        depth: &ic_geometry::DepthImage,
+    ) -> ic_geometry::Mask {
+        if self.depth_refine_px == 0 {
+            return mask;
+        }
+        let band =
+            ((self.depth_refine_px as f64 * depth.width as f64 / 640.0).round() as usize).max(1);
+        crate::post::refine_with_depth(&mask, depth, band, self.depth_jump)
+    }
+}
+
 impl Default for PostConfig {
     fn default() -> Self {
         PostConfig {

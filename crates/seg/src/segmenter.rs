@@ -10,9 +10,7 @@ use ic_geometry::{DepthImage, Image, Intrinsics, Mask};
 
 use crate::config::SegConfig;
 use crate::input::{INPUT_CHANNELS, prepare, upsample_bilinear};
-use crate::post::{
-    Instance, best_instance, erode3x3, instances, masked_points, refine_with_depth, split_instances,
-};
+use crate::post::{Instance, best_instance, erode3x3, instances, masked_points, split_instances};
 use crate::unet::UNet;
 use crate::{Result, SegError, checkpoint};
 
@@ -100,6 +98,26 @@ impl Segmenter {
         Ok(p.flatten_from(1)?.to_vec2::<f32>()?)
     }
 
+    /// Output map `index` of `small` (one image of [`Segmenter::probabilities_small`])
+    /// up-sampled to `depth`'s resolution, 0 where the sensor saw nothing.
+    fn full_resolution(&self, small: &[f32], index: usize, depth: &DepthImage) -> Vec<f32> {
+        let (w, h) = (self.config.net.input_width, self.config.net.input_height);
+        let plane = (w * h) as usize;
+        let mut prob = upsample_bilinear(
+            &small[index * plane..(index + 1) * plane],
+            w,
+            h,
+            depth.width,
+            depth.height,
+        );
+        for (p, z) in prob.iter_mut().zip(&depth.data) {
+            if !(z.is_finite() && *z > 0.0) {
+                *p = 0.0;
+            }
+        }
+        prob
+    }
+
     /// Finds the object in `depth` (any resolution; it must match `intrinsics`).
     ///
     /// Errors: [`SegError::ObjectNotFound`] when no instance scores above the threshold;
@@ -112,35 +130,17 @@ impl Segmenter {
         let small = self.probabilities_small(&[depth])?.remove(0);
         let network_seconds = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
-        let (w, h) = (self.config.net.input_width, self.config.net.input_height);
-        let plane = (w * h) as usize;
-        let mut prob = upsample_bilinear(&small[..plane], w, h, depth.width, depth.height);
-        // No object where the sensor saw nothing.
-        for (p, z) in prob.iter_mut().zip(&depth.data) {
-            if !(z.is_finite() && *z > 0.0) {
-                *p = 0.0;
-            }
-        }
+        let prob = self.full_resolution(&small, 0, depth);
         let post = &self.config.post;
-        // min_pixels is given for a 640×480 map; scale it with the image area.
-        let area = (depth.width as f64 * depth.height as f64) / (640.0 * 480.0);
-        let min_pixels = ((post.min_pixels as f64 * area).round() as usize).max(1);
         let best = best_instance(
             &prob,
             depth.width,
             depth.height,
             post.pixel_threshold,
             post.score_threshold,
-            min_pixels,
+            post.min_pixels_at(depth.width, depth.height),
         )?;
-        let mask = if post.depth_refine_px > 0 {
-            let band = ((post.depth_refine_px as f64 * depth.width as f64 / 640.0).round()
-                as usize)
-                .max(1);
-            refine_with_depth(&best.mask, depth, band, post.depth_jump)
-        } else {
-            best.mask
-        };
+        let mask = post.refine(best.mask, depth);
         Ok(Segmentation {
             mask,
             score: best.score,
@@ -164,34 +164,11 @@ impl Segmenter {
         intrinsics.validate()?;
         depth.check_size(intrinsics.width, intrinsics.height)?;
         let small = self.probabilities_small(&[depth])?.remove(0);
-        let (w, h) = (self.config.net.input_width, self.config.net.input_height);
-        let plane = (w * h) as usize;
-        let valid = |mut p: Vec<f32>| {
-            for (p, z) in p.iter_mut().zip(&depth.data) {
-                if !(z.is_finite() && *z > 0.0) {
-                    *p = 0.0;
-                }
-            }
-            p
-        };
-        let object = valid(upsample_bilinear(
-            &small[..plane],
-            w,
-            h,
-            depth.width,
-            depth.height,
-        ));
+        let object = self.full_resolution(&small, 0, depth);
         let post = &self.config.post;
-        let area = (depth.width as f64 * depth.height as f64) / (640.0 * 480.0);
-        let min_pixels = ((post.min_pixels as f64 * area).round() as usize).max(1);
+        let min_pixels = post.min_pixels_at(depth.width, depth.height);
         Ok(if self.config.net.outputs == 2 {
-            let core = valid(upsample_bilinear(
-                &small[plane..2 * plane],
-                w,
-                h,
-                depth.width,
-                depth.height,
-            ));
+            let core = self.full_resolution(&small, 1, depth);
             split_instances(
                 &object,
                 &core,

@@ -24,24 +24,15 @@ pub struct SegExample {
 }
 
 impl SegExample {
-    /// Resizes `depth` and `mask` (the same size) to the network input of `config`.
+    /// Resizes `depth` and `mask` (the same size) to the network input of `config`: the
+    /// object is the one instance ([`SegExample::from_instances`]).
     pub fn new(depth: &DepthImage, mask: &Mask, config: &SegConfig) -> Result<SegExample> {
-        if (depth.width, depth.height) != (mask.width, mask.height) {
-            return Err(SegError::Input(format!(
-                "depth {}×{} vs mask {}×{}",
-                depth.width, depth.height, mask.width, mask.height
-            )));
-        }
-        let (w, h) = (config.net.input_width, config.net.input_height);
-        let as_depth = DepthImage {
+        let ids = Image {
             width: mask.width,
             height: mask.height,
-            data: mask.data.iter().map(|&m| m as u8 as f32).collect(),
+            data: mask.data.iter().map(|&m| m as u32).collect(),
         };
-        Ok(SegExample {
-            input: prepare(depth, w, h)?,
-            target: resize_nearest(&as_depth, w, h),
-        })
+        Self::from_instances(depth, &ids, |_| true, config)
     }
 
     /// An example of a scene with many objects: `instances` (the depth map's size) says which
@@ -58,7 +49,7 @@ impl SegExample {
     ) -> Result<SegExample> {
         if (depth.width, depth.height) != (instances.width, instances.height) {
             return Err(SegError::Input(format!(
-                "depth {}×{} vs instances {}×{}",
+                "depth {}×{} vs its labels {}×{}",
                 depth.width, depth.height, instances.width, instances.height
             )));
         }

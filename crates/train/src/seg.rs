@@ -426,12 +426,8 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
 /// `train-seg`: trains into `args.out` on the blob-style folder `args.objects` until the
 /// planned iterations are done, the stop flag is set or the deadline passes.
 pub fn train(args: &TrainArgs, control: RunControl<'_>) -> Result<Outcome> {
-    let (train_corpus, val_corpus) = if scene_kind(args)? == SceneKind::Clutter {
-        let text = args
-            .objects
-            .to_str()
-            .with_context(|| format!("--objects {}: not UTF-8", args.objects.display()))?;
-        let spec: crate::objects::ObjectsSpec = text.parse()?;
+    let (train_corpus, val_corpus) = if scene_kind(&args.scenes)? == SceneKind::Clutter {
+        let spec = objects_spec(&args.objects)?;
         (
             crate::pose::open_objects(&spec, Split::Train)?,
             crate::pose::open_objects(&spec, Split::Val)?,
@@ -458,12 +454,21 @@ pub enum SceneKind {
     Clutter,
 }
 
-fn scene_kind(args: &TrainArgs) -> Result<SceneKind> {
-    match args.scenes.as_str() {
+/// The `--scenes` flag.
+fn scene_kind(scenes: &str) -> Result<SceneKind> {
+    match scenes {
         "room" => Ok(SceneKind::Room),
         "clutter" => Ok(SceneKind::Clutter),
         other => bail!("--scenes {other:?}: expected room or clutter"),
     }
+}
+
+/// `--objects` of clutter scenes: a folder with `split.json` or a weighted mixture.
+fn objects_spec(objects: &Path) -> Result<crate::objects::ObjectsSpec> {
+    let text = objects
+        .to_str()
+        .with_context(|| format!("--objects {}: not UTF-8", objects.display()))?;
+    text.parse()
 }
 
 /// Where training examples come from.
@@ -562,7 +567,7 @@ pub fn train_objects(
         val_corpus.len()
     );
     let (w, h) = (cfg.train.render_width, cfg.train.render_height);
-    let kind = scene_kind(args)?;
+    let kind = scene_kind(&args.scenes)?;
     if (kind == SceneKind::Clutter) != (cfg.net.outputs == 2) {
         bail!(
             "--scenes {} needs a {} network (preset {:?} has {} output(s)): use --preset {}",
@@ -746,11 +751,8 @@ impl Task for SegTask {
 /// `<model>.eval-<split>.json`). RAYON_NUM_THREADS (`--threads`) is the caller's to set.
 pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
     let mut seg = Segmenter::load(&args.model)?;
-    if args.scenes == "clutter" {
+    if scene_kind(&args.scenes)? == SceneKind::Clutter {
         return eval_clutter(args, &seg);
-    }
-    if args.scenes != "room" {
-        bail!("--scenes {:?}: expected room or clutter", args.scenes);
     }
     if let Some(px) = args.depth_refine_px {
         seg.config_mut().post.depth_refine_px = px;
@@ -831,11 +833,7 @@ pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
 /// `eval-seg --scenes clutter`: every instance of `args.count` cluttered scenes (640×480,
 /// seed `args.seed`, objects of `args.split`).
 fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
-    let text = args
-        .objects
-        .to_str()
-        .with_context(|| format!("--objects {}: not UTF-8", args.objects.display()))?;
-    let spec: crate::objects::ObjectsSpec = text.parse()?;
+    let spec = objects_spec(&args.objects)?;
     let split: Split = args.split.parse()?;
     let corpus = crate::pose::open_objects(&spec, split)?;
     let cfg = ClutterConfig {
