@@ -271,7 +271,8 @@ pub struct EvalArgs {
     /// Also run the geometry-only alternative (RANSAC planes + Euclidean clustering).
     #[arg(long)]
     pub geometric: bool,
-    /// Override the depth-edge refinement band (pixels at 640 wide; 0 = off).
+    /// Override the depth-edge refinement band (pixels at 640 wide; 0 = off). Room scenes
+    /// only: clutter scenes score `Segmenter::instances`, which does not refine.
     #[arg(long)]
     pub depth_refine_px: Option<usize>,
     /// Override the pixel probability threshold.
@@ -751,14 +752,14 @@ impl Task for SegTask {
 /// `<model>.eval-<split>.json`). RAYON_NUM_THREADS (`--threads`) is the caller's to set.
 pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
     let mut seg = Segmenter::load(&args.model)?;
-    if scene_kind(&args.scenes)? == SceneKind::Clutter {
-        return eval_clutter(args, &seg);
-    }
     if let Some(px) = args.depth_refine_px {
         seg.config_mut().post.depth_refine_px = px;
     }
     if let Some(t) = args.pixel_threshold {
         seg.config_mut().post.pixel_threshold = t;
+    }
+    if scene_kind(&args.scenes)? == SceneKind::Clutter {
+        return eval_clutter(args, &seg);
     }
     let (split, holdout) = match args.split.as_str() {
         "test" => (Split::Test, false),
