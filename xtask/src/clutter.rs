@@ -37,11 +37,9 @@ fn colour(id: u32) -> [u8; 3] {
         return [70, 70, 70];
     }
     let h = ic_data::mix_seed(id as u64, 0x636f6c);
-    [
-        60 + (h & 0x7f) as u8 * 3 / 2,
-        60 + ((h >> 8) & 0x7f) as u8 * 3 / 2,
-        60 + ((h >> 16) & 0x7f) as u8 * 3 / 2,
-    ]
+    // 60 + (0..=127)·3/2 ≤ 250: computed in u64, no overflow.
+    let channel = |shift: u32| (60 + ((h >> shift) & 0x7f) * 3 / 2) as u8;
+    [channel(0), channel(8), channel(16)]
 }
 
 pub fn preview(args: PreviewArgs) -> Result<()> {

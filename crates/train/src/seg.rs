@@ -852,11 +852,30 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     let bar = ProgressBar::new(args.count);
     let mut matches = Vec::new();
     let mut seconds = Vec::new();
+    let mut rows = String::from(
+        "scene,support,objects,target_copies,target_object,target_size_m,target_depth_m,\
+         target_visible_px,target_best_iou,predictions\n",
+    );
     for (i, s) in scenes.enumerate() {
         let s = s?;
         let t = Instant::now();
-        matches.push(scene_instances(seg, &s)?);
+        let m = scene_instances(seg, &s)?;
         seconds.push(t.elapsed().as_secs_f64());
+        let target = &s.objects[0];
+        rows.push_str(&format!(
+            "{},{},{},{},{},{:.3},{:.3},{},{:.4},{}\n",
+            s.index,
+            s.support.as_str(),
+            s.objects.len(),
+            s.targets().count(),
+            target.object.id,
+            2.0 * target.scale_m,
+            target.pose.translation.z,
+            target.visible_pixels,
+            m.best_iou.first().copied().unwrap_or(0.0),
+            m.predictions,
+        ));
+        matches.push(m);
         bar.set_position(i as u64 + 1);
         if (i + 1) % 50 == 0 && !crate::interactive() {
             tracing::info!("{}/{} scenes", i + 1, args.count);
@@ -881,6 +900,8 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
         PathBuf::from(p)
     });
     crate::write_atomic(&out, serde_json::to_string_pretty(&report)?.as_bytes())?;
-    tracing::info!("written {}", out.display());
+    let csv = out.with_extension("csv");
+    crate::write_atomic(&csv, rows.as_bytes())?;
+    tracing::info!("written {} and {} (one row per scene)", out.display(), csv.display());
     Ok(report)
 }
