@@ -5,6 +5,9 @@
 //! - `register_640x480/verified_k24`: the default of `register` (24 rotated copies, the best 8
 //!   refined and verified);
 //! - `register_640x480/paper_k1`: `--rotations 1`, the paper's single pass;
+//! - `register_640x480/clutter15_verified_k24`: the default of `register` with the clutter
+//!   segmentation network on a table, bin or shelf of 15 procedural objects (metres, sensor
+//!   model on; the target chosen among the instances);
 //! - `baseline/sum_300k_points`: the in-run baseline that ratios are taken to.
 //!
 //! The object (mesh normalised and sampled) is prepared once, outside the timing, as an
@@ -15,7 +18,10 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use ic_data::{Corpus, CorpusOptions, RoomSampleConfig, RoomSampleGenerator, Split};
+use ic_data::{
+    ClutterConfig, ClutterGenerator, Corpus, CorpusOptions, RoomSampleConfig, RoomSampleGenerator,
+    Split,
+};
 use ic_geometry::{DepthImage, Intrinsics};
 use ic_render::CpuRenderer;
 use incontext::{Object, Pipeline, PipelineOptions, StageSeconds};
@@ -135,5 +141,70 @@ fn register(c: &mut Criterion) {
     eprintln!("wrote {}", path.display());
 }
 
-criterion_group!(benches, baseline, register);
+/// A clutter scene of `ic_data::clutter` with `objects` procedural objects at 640×480 (metres,
+/// sensor model on): the depth in the target's normalised units and the prepared target.
+fn clutter_scene(seed: u64, objects: usize) -> (DepthImage, Intrinsics, Object) {
+    let options = CorpusOptions {
+        model_points: 16,
+        ..CorpusOptions::default()
+    };
+    let corpus = Arc::new(Corpus::procedural(24, Split::Test, seed, options).unwrap());
+    let cfg = ClutterConfig {
+        object_count: (objects, objects),
+        fixed_sizes: true,
+        multi_target_probability: 0.0,
+        ..ClutterConfig::default()
+    };
+    let s = ClutterGenerator::new(corpus, cfg, seed)
+        .unwrap()
+        .scene(0)
+        .unwrap();
+    let target = &s.objects[0];
+    let object = Object::from_mesh((*target.object.mesh).clone(), seed).unwrap();
+    let scale = target.scale_m as f32;
+    let mut depth = s.depth.clone();
+    depth.data.iter_mut().for_each(|z| *z /= scale);
+    (depth, s.intrinsics, object)
+}
+
+/// `register` on tables, bins and shelves of 15 objects with the clutter segmentation
+/// network (two outputs: objects and instance cores), which finds every object so that the
+/// target is chosen among them (up to [`PipelineOptions::instance_tries`] registrations).
+fn register_clutter(c: &mut Criterion) {
+    let seg = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(CLUTTER_SEG);
+    let scenes: Vec<_> = (1..=3).map(|s| clutter_scene(s, 15)).collect();
+    let pipeline = Pipeline::builder().seg_model(&seg).build().unwrap();
+    let mut group = c.benchmark_group("register_640x480");
+    group.sample_size(10);
+    let mut i = 0usize;
+    group.bench_function("clutter15_verified_k24", |b| {
+        b.iter(|| {
+            let (depth, k, object) = &scenes[i % scenes.len()];
+            i += 1;
+            black_box(
+                pipeline
+                    .register_depth_normalised(object, depth, k, None, 0)
+                    .is_ok(),
+            )
+        })
+    });
+    group.finish();
+    for (depth, k, object) in &scenes {
+        match pipeline.register_depth_normalised(object, depth, k, None, 0) {
+            Ok(r) => eprintln!(
+                "register_640x480 clutter15: {} after {} tries of {} instances, stages {}",
+                r.verdict.as_str(),
+                r.instance.map_or(0, |i| i.rank + 1),
+                r.instance.map_or(0, |i| i.candidates),
+                serde_json::to_string(&r.seconds).unwrap()
+            ),
+            Err(e) => eprintln!("register_640x480 clutter15: {e}"),
+        }
+    }
+}
+
+/// The clutter segmentation network (relative to this crate).
+const CLUTTER_SEG: &str = "../../models/runs/seg-clutter/best.safetensors";
+
+criterion_group!(benches, baseline, register, register_clutter);
 criterion_main!(benches);

@@ -35,11 +35,15 @@
 //! - `cargo xtask verify-report --set NAME=CASES:RESULTS …` scores `incontext eval --cases`
 //!   results on view cases: acc@15°, ADD-S, verdict precision/recall, reliability diagram,
 //!   and fits the confidence calibration (`--fit-calibration`).
+//! - `cargo xtask fit-clutter-calibration --candidates FILE… --out FILE` fits the confidence
+//!   calibration of poses on network-segmented instances from `incontext eval --dataset …
+//!   --candidates N` lines on clutter scenes (`models/verify-calibration-clutter.json`).
 //! - `cargo xtask seg-post --model FILE --out FILE [--pixel-threshold …]` rewrites a
 //!   segmentation checkpoint's post-processing settings (chosen on validation scenes).
 
 mod bench;
 mod clutter;
+mod clutter_calibration;
 mod data;
 mod pose;
 mod seg;
@@ -91,6 +95,9 @@ enum Cmd {
     /// Score `incontext eval --cases` results of view cases: accuracy, ADD-S, verdict
     /// precision and recall, reliability diagram, calibration fit.
     VerifyReport(verify_report::VerifyReportArgs),
+    /// Fit the confidence calibration of poses on network-segmented instances from
+    /// `incontext eval --dataset … --candidates N` lines on clutter scenes.
+    FitClutterCalibration(clutter_calibration::FitClutterCalibrationArgs),
     /// Render cluttered scenes (tables, bins, shelves with 3–15 objects) as PNG contact
     /// sheets: depth, true instances, and a segmentation checkpoint's instances.
     ClutterPreview(clutter::PreviewArgs),
@@ -149,6 +156,7 @@ fn main() -> std::process::ExitCode {
             seg::set_post(args)
         }
         Cmd::VerifyReport(args) => verify_report::run(args),
+        Cmd::FitClutterCalibration(args) => clutter_calibration::run(args),
         Cmd::Symmetries(args) => {
             init_tracing();
             symmetries::run(args)

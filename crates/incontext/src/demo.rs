@@ -135,6 +135,7 @@ pub fn run(args: &DemoArgs, seed: u64) -> Result<Value> {
         overlay: Some(files.overlay.clone()),
         ply: Some(files.ply.clone()),
         all: false,
+        min_confidence: None,
     };
     let outcome = register::register_files(&rargs, seed)?;
     let r = &outcome.registration;

@@ -80,6 +80,12 @@ pub struct EvalArgs {
     /// --cases: add a "details" object (confidence, point counts, stage seconds) to each line.
     #[arg(long)]
     pub details: bool,
+    /// --dataset, without --gt-mask: also register each of the best N instances the
+    /// segmentation finds whose size fits the model, whatever its verdict, and write every
+    /// one with its errors (to the nearest true instance of the target) and its verification
+    /// to `candidates.jsonl` — the data for studying the verdict in clutter. 0 = off.
+    #[arg(long, default_value_t = 0)]
+    pub candidates: usize,
     /// A pose checkpoint instead of the shipped one (its head must be the methods' head).
     #[arg(long)]
     pub pose_model: Option<PathBuf>,
@@ -662,7 +668,13 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
         args.pose_model.as_deref(),
         args.seg_model.as_deref(),
         !args.gt_mask,
-        args.pipeline_options(),
+        // BOP scores the best `inst_count` estimates of a target whatever their confidence
+        // (it only ranks them): several instances come from every one the `--all` search
+        // registers, `uncertain` included, not only the `ok` ones `register --all` returns.
+        PipelineOptions {
+            all_min_confidence: Some(0.0),
+            ..args.pipeline_options()
+        },
     )?;
     let config = json!({
         "dataset": dir, "split": args.split, "out": out, "seed": seed,
@@ -689,6 +701,7 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
         // one time per image, the same on each of its rows).
         let mut rows: BTreeMap<String, ImageRows> = BTreeMap::new();
         let mut per_image = Vec::new();
+        let mut candidates = Vec::new();
         let mut objects: BTreeMap<String, (Object, f64)> = BTreeMap::new();
         let bar = progress(n as u64, name);
         for target in &targets[..n] {
@@ -768,6 +781,20 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                     ));
                 }
                 let s = clock.elapsed().as_secs_f64();
+                if args.candidates > 0 && !args.gt_mask {
+                    let every = pipeline.register_every_instance_normalised(
+                        object,
+                        &first.depth,
+                        &first.intrinsics,
+                        args.candidates,
+                        cseed,
+                    )?;
+                    for r in &every {
+                        candidates.push(candidate_line(
+                            target, &m.name, r, object, *diameter, &samples,
+                        )?);
+                    }
+                }
                 let found: Vec<&Registration> =
                     estimates.iter().filter_map(|e| e.as_ref().ok()).collect();
                 // Each estimate (best first) claims the unclaimed true instance nearest it
@@ -899,6 +926,9 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
         write_text(&sub_out.join("results.md"), &format!("{heading}{table}"))?;
         ic_eval::write_json(&sub_out.join("results.json"), &results)?;
         write_lines(&sub_out.join("per_image.jsonl"), &per_image)?;
+        if args.candidates > 0 && !args.gt_mask {
+            write_lines(&sub_out.join("candidates.jsonl"), &candidates)?;
+        }
         for ext in ["png", "svg"] {
             plot_atomic(
                 &sub_out.join(format!("rotation.{ext}")),
@@ -930,6 +960,45 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
     Ok(
         json!({"command": "eval", "mode": "dataset", "seed": seed, "config": config, "datasets": report, "tables": tables}),
     )
+}
+
+/// One line of `candidates.jsonl`: a registration of one of the segmentation's instances
+/// for `target`, its errors to the nearest true instance (ADD-S; normalised units, `add_s`
+/// divided by the `diameter`), the best IoU of its mask with a true instance's visible mask,
+/// and what the verdict rests on.
+fn candidate_line(
+    target: &BopTarget,
+    method: &str,
+    r: &Registration,
+    object: &Object,
+    diameter: f64,
+    samples: &[ic_data::RoomSample],
+) -> Result<String> {
+    let nearest = samples
+        .iter()
+        .min_by(|a, b| {
+            let d = |s: &ic_data::RoomSample| object.add_s(&r.pose_normalised, &s.pose);
+            d(a).total_cmp(&d(b))
+        })
+        .ok_or_else(|| CliError::internal("a target without true instances"))?;
+    let mut e = PoseErrors::compute(&r.pose_normalised, &nearest.pose, Some(&object.points))?;
+    e.add_s = e.add_s.map(|a| a / diameter);
+    e.add = e.add.map(|a| a / diameter);
+    let instance_iou = r.mask.as_ref().map_or(0.0, |m| {
+        samples
+            .iter()
+            .map(|s| ic_seg::post::iou(m, &s.mask_visib))
+            .fold(0.0, f64::max)
+    });
+    Ok(json!({
+        "scene_id": target.scene_id, "im_id": target.im_id, "obj_id": target.obj_id,
+        "method": method, "true_instances": samples.len(), "errors": e,
+        "right": e.add_s.is_some_and(|a| a < 0.1), "instance_iou": instance_iou,
+        "confidence": r.confidence, "verdict": r.verdict, "verification": r.verification,
+        "rival_score": r.rival_score, "evidence": r.evidence, "instance": r.instance,
+        "segmentation": r.segmentation, "object_voxels": r.object_voxels,
+    })
+    .to_string())
 }
 
 // ---------------------------------------------------------------------------------------------

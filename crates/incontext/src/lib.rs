@@ -98,6 +98,6 @@ pub mod verify;
 pub use error::{CliError, ErrorKind, Result, ResultExt};
 pub use ic_pose::{Head, Refine};
 pub use pipeline::{
-    Object, Pipeline, PipelineBuilder, PipelineError, PipelineOptions, Registration, StageSeconds,
-    Verdict,
+    CalibrationUsed, Object, Pipeline, PipelineBuilder, PipelineError, PipelineOptions,
+    Registration, StageSeconds, Verdict,
 };

@@ -173,6 +173,38 @@ pub fn verified_calibration() -> &'static ic_eval::Calibration {
     })
 }
 
+/// The isotonic calibration of a verified pose's [`segmentation_evidence`] when the
+/// segmentation network chose its pixels, `models/verify-calibration-clutter.json` (fitted by
+/// `cargo xtask fit-clutter-calibration` on every instance registered in clutter scenes of
+/// validation objects, see `models/README.md`): the probability that the pose is right (ADD-S
+/// below 0.1 of the diameter of a true instance of the object) given that evidence. In
+/// clutter most wrong poses are good fits of *another* object, which the single-object
+/// calibration ([`verified_calibration`]) calls right. Embedded in the binary.
+pub fn clutter_calibration() -> &'static ic_eval::Calibration {
+    static CALIBRATION: std::sync::OnceLock<ic_eval::Calibration> = std::sync::OnceLock::new();
+    CALIBRATION.get_or_init(|| {
+        #[derive(serde::Deserialize)]
+        struct File {
+            knots: Vec<(f64, f64)>,
+        }
+        let text = include_str!("../../../models/verify-calibration-clutter.json");
+        let file: File =
+            serde_json::from_str(text).expect("models/verify-calibration-clutter.json parses");
+        ic_eval::Calibration::new(file.knots)
+            .expect("models/verify-calibration-clutter.json is a calibration")
+    })
+}
+
+/// The evidence a verified pose on a network-segmented instance rests on, in [0, 1]: its
+/// [`evidence`] times the verification's agreement (the fraction of the model's rendered
+/// pixels that the observed depth explains). A pose that explains the instance's pixels but
+/// whose rendering runs off them — a model fitted to another, differently shaped object — has
+/// low agreement; on clutter validation scenes the product separated right from wrong better
+/// than the evidence alone (`docs/decisions.md`).
+pub fn segmentation_evidence(evidence: f64, agreement: f64) -> f64 {
+    (evidence * agreement).clamp(0.0, 1.0)
+}
+
 /// The winner of the verification is refined again on more object voxels; that finer fit is
 /// kept unless its render-and-compare score drops by more than this.
 pub const FINE_REFINE_SLACK: f64 = 0.02;
@@ -462,6 +494,12 @@ pub struct PipelineOptions {
     /// size fits the model, [`InstanceCandidate`]) are registered before giving up; the first
     /// whose verdict is `ok` ends the search, otherwise the best verified one wins.
     pub instance_tries: usize,
+    /// `register --all` ([`Pipeline::register_depth_all`]) also returns `uncertain` instances
+    /// whose confidence reaches this (`None`: only `ok` ones). The confidence of a
+    /// network-segmented instance is calibrated on clutter ([`clutter_calibration`]), so a
+    /// lower bar trades the share of right poses among those returned for more of the
+    /// instances.
+    pub all_min_confidence: Option<f64>,
 }
 
 impl Default for PipelineOptions {
@@ -485,6 +523,7 @@ impl Default for PipelineOptions {
             sweep_keep: 0,
             network_passes: 1,
             instance_tries: 3,
+            all_min_confidence: None,
         }
     }
 }
@@ -529,6 +568,19 @@ impl InstanceCandidate {
             self.score,
         )
     }
+}
+
+/// Which of the segmentation network's instances [`Pipeline::register_instances`] registers
+/// and returns.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum InstanceSearch {
+    /// The best [`PipelineOptions::instance_tries`] until one is `ok`; all registered, best
+    /// first.
+    FirstOk,
+    /// Every plausible one; the `ok` ones (or the best `uncertain` one), one per object.
+    AllOk,
+    /// The best `limit` plausible ones (0 = all), every registration, best first, unfiltered.
+    Every { limit: usize },
 }
 
 /// Seconds spent in each stage of one registration.
@@ -577,10 +629,14 @@ pub struct Registration {
     /// The network's one-shot estimate (normalised units), before refinement.
     pub one_shot_normalised: Pose,
     /// In [0, 1]. Verified registrations: the probability that the pose is right (ADD-S below
-    /// 0.1 of the diameter), the calibration ([`verified_calibration`]) of the [`evidence`].
+    /// 0.1 of the diameter), the calibration ([`verified_calibration`]) of the [`evidence`];
+    /// when the segmentation network chose the pixels, the clutter calibration
+    /// ([`clutter_calibration`]) of the [`segmentation_evidence`] ([`Registration::calibration`]).
     /// Unverified: the fraction of the observed object voxels within [`MATCH_DISTANCE`]
     /// (normalised) of the model at the final pose.
     pub confidence: f64,
+    /// Which calibration turned the verification into the confidence.
+    pub calibration: CalibrationUsed,
     /// What the confidence says of the pose.
     pub verdict: Verdict,
     /// The render-and-compare score of the pose, when hypotheses were verified.
@@ -613,6 +669,20 @@ pub struct Registration {
     /// The object mask used (before erosion), for depth inputs.
     #[serde(skip)]
     pub mask: Option<Mask>,
+}
+
+/// How a registration's confidence was obtained ([`Registration::calibration`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CalibrationUsed {
+    /// Not verified: the point-distance confidence, not a probability.
+    None,
+    /// The pixels were given (a mask, points): [`verified_calibration`] of the [`evidence`],
+    /// fitted on single objects.
+    Object,
+    /// The segmentation network chose the pixels: [`clutter_calibration`] of the
+    /// [`segmentation_evidence`], fitted on clutter scenes.
+    Segmentation,
 }
 
 /// Which segmentation instance a registration used ([`Registration::instance`]).
@@ -770,6 +840,13 @@ impl PipelineBuilder {
     /// ([`PipelineOptions::network_passes`]).
     pub fn network_passes(mut self, network_passes: usize) -> Self {
         self.options.network_passes = network_passes;
+        self
+    }
+
+    /// `register --all` also returns `uncertain` instances of at least this confidence
+    /// ([`PipelineOptions::all_min_confidence`]).
+    pub fn all_min_confidence(mut self, confidence: f64) -> Self {
+        self.options.all_min_confidence = Some(confidence);
         self
     }
 
@@ -964,7 +1041,14 @@ impl Pipeline {
                 clock,
             );
         }
-        let mut all = self.register_instances(object, depth_n, intrinsics, seed, clock, false)?;
+        let mut all = self.register_instances(
+            object,
+            depth_n,
+            intrinsics,
+            seed,
+            clock,
+            InstanceSearch::FirstOk,
+        )?;
         Ok(all.remove(0))
     }
 
@@ -989,7 +1073,38 @@ impl Pipeline {
                 intrinsics,
                 seed,
                 Instant::now(),
-                true,
+                InstanceSearch::AllOk,
+            ) {
+                Ok(found) => Ok(found),
+                Err(PipelineError::NotFound(_)) => Ok(Vec::new()),
+                Err(e) => Err(e),
+            }
+        })
+    }
+
+    /// The registration of each of the best `limit` instances (0 = all) whose size fits the
+    /// model (or of the one too-large instance when none fits, as `register` does), whatever
+    /// its verdict, best first (verdict, confidence, render-and-compare score); `depth` in
+    /// normalised units as [`Pipeline::register_depth_normalised`]. For studying the verdict
+    /// in clutter: [`Pipeline::register_depth_all_normalised`] keeps only the `ok` ones of
+    /// these. An empty list when no instance fits or can be registered.
+    pub fn register_every_instance_normalised(
+        &self,
+        object: &Object,
+        depth_normalised: &DepthImage,
+        intrinsics: &Intrinsics,
+        limit: usize,
+        seed: u64,
+    ) -> Result<Vec<Registration>> {
+        self.in_pool(|| {
+            check_depth_input(depth_normalised, intrinsics)?;
+            match self.register_instances(
+                object,
+                depth_normalised,
+                intrinsics,
+                seed,
+                Instant::now(),
+                InstanceSearch::Every { limit },
             ) {
                 Ok(found) => Ok(found),
                 Err(PipelineError::NotFound(_)) => Ok(Vec::new()),
@@ -1066,7 +1181,7 @@ impl Pipeline {
         Ok(out)
     }
 
-    /// Registers the best instances (all plausible ones with `all`), see
+    /// Registers the instances `search` asks for, see [`InstanceSearch`] and
     /// [`PipelineOptions::instance_tries`]; best first, never empty (not-found error instead).
     fn register_instances(
         &self,
@@ -1075,7 +1190,7 @@ impl Pipeline {
         intrinsics: &Intrinsics,
         seed: u64,
         clock: Instant,
-        all: bool,
+        search: InstanceSearch,
     ) -> Result<Vec<Registration>> {
         let t = Instant::now();
         let all_candidates = self.instance_candidates(object, depth_n, intrinsics)?;
@@ -1103,10 +1218,10 @@ impl Pipeline {
                 largest
             )));
         }
-        let tries = if all {
-            candidates.len()
-        } else {
-            self.options.instance_tries.max(1)
+        let tries = match search {
+            InstanceSearch::FirstOk => self.options.instance_tries.max(1),
+            InstanceSearch::AllOk | InstanceSearch::Every { limit: 0 } => candidates.len(),
+            InstanceSearch::Every { limit } => limit,
         };
         let mut done: Vec<Registration> = Vec::new();
         let mut first_error = None;
@@ -1131,12 +1246,20 @@ impl Pipeline {
                 clock,
             ) {
                 Ok(mut r) => {
+                    // The network chose the pixels: the confidence of a verified pose is the
+                    // clutter calibration's (it may be another object).
+                    if let (Some(e), Some(v)) = (r.evidence, r.verification) {
+                        r.confidence =
+                            clutter_calibration().apply(segmentation_evidence(e, v.agreement));
+                        r.verdict = Verdict::of_verified(v.score, r.confidence, &self.options);
+                        r.calibration = CalibrationUsed::Segmentation;
+                    }
                     r.instance = Some(InstanceChoice {
                         rank: i,
                         candidates: all_candidates.len(),
                         size_ratio: c.size_ratio,
                     });
-                    let stop = !all && r.verdict == Verdict::Ok;
+                    let stop = search == InstanceSearch::FirstOk && r.verdict == Verdict::Ok;
                     done.push(r);
                     if stop {
                         break;
@@ -1172,16 +1295,24 @@ impl Pipeline {
                 .then(kb.1.total_cmp(&ka.1))
                 .then(kb.2.total_cmp(&ka.2))
         });
-        if all {
-            // Every `ok` instance; when none is `ok`, the best `uncertain` one alone (a bin
-            // of parts wants confident picks: on the IC-BIN frames most `uncertain` extra
-            // instances were wrong, `docs/decisions.md`).
-            let any_ok = done.iter().any(|r| r.verdict == Verdict::Ok);
+        if search == InstanceSearch::AllOk {
+            // Every `ok` instance (and, with `all_min_confidence`, every `uncertain` one that
+            // reaches it); when there is none, the best `uncertain` one alone (a bin of parts
+            // wants confident picks, `docs/decisions.md`).
+            let wanted = |r: &Registration| {
+                r.verdict == Verdict::Ok
+                    || (r.verdict == Verdict::Uncertain
+                        && self
+                            .options
+                            .all_min_confidence
+                            .is_some_and(|m| r.confidence >= m))
+            };
+            let any_wanted = done.iter().any(wanted);
             let mut kept: Vec<Registration> = Vec::new();
             for r in done {
                 if r.verdict == Verdict::NotFound
-                    || (any_ok && r.verdict != Verdict::Ok)
-                    || (!any_ok && !kept.is_empty())
+                    || (any_wanted && !wanted(&r))
+                    || (!any_wanted && !kept.is_empty())
                 {
                     continue;
                 }
@@ -1343,6 +1474,10 @@ impl Pipeline {
             pose_normalised: best.pose,
             one_shot_normalised: best.one_shot,
             confidence,
+            calibration: match &verification {
+                Some(_) => CalibrationUsed::Object,
+                None => CalibrationUsed::None,
+            },
             verdict: match &verification {
                 Some(score) => Verdict::of_verified(score.score, confidence, &self.options),
                 None => Verdict::of(confidence, &self.options),
@@ -1765,6 +1900,26 @@ fn check_units(voxels: &[Vec3]) {
 mod tests {
     use super::*;
     use ic_geometry::glam::DVec3;
+
+    #[test]
+    fn clutter_confidence_doubts_moderate_fits_that_a_given_mask_would_trust() {
+        // A pose that explains its instance fully stays `ok` in clutter …
+        let full = clutter_calibration().apply(segmentation_evidence(0.99, 1.0));
+        assert!(full >= VERIFIED_OK, "{full}");
+        // … a moderate fit, `ok` with a given mask, is often another object in clutter.
+        let single = verified_calibration().apply(0.75);
+        let clutter = clutter_calibration().apply(segmentation_evidence(0.75, 0.9));
+        assert!(single >= VERIFIED_OK && clutter < 0.7, "{single} {clutter}");
+        // Monotone, a probability; the evidence is a product clamped to [0, 1].
+        let mut last = 0.0;
+        for i in 0..=100 {
+            let p = clutter_calibration().apply(i as f64 / 100.0);
+            assert!((0.0..=1.0).contains(&p) && p >= last);
+            last = p;
+        }
+        assert_eq!(segmentation_evidence(1.5, 1.0), 1.0);
+        assert!((segmentation_evidence(0.8, 0.5) - 0.4).abs() < 1e-12);
+    }
 
     #[test]
     fn evidence_is_capped_by_the_margin_over_a_different_pose() {

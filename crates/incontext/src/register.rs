@@ -73,6 +73,21 @@ pub struct RegisterArgs {
     /// the best. Needs the segmentation network (not with --mask).
     #[arg(long)]
     pub all: bool,
+    /// With --all: also return `uncertain` instances whose confidence (the calibrated
+    /// probability that the pose is right) reaches this, in [0, 1]. Default: only `ok` ones
+    /// (confidence ≥ 0.9), or the best `uncertain` one when none is `ok`.
+    #[arg(long, requires = "all", value_parser = parse_probability)]
+    pub min_confidence: Option<f64>,
+}
+
+/// A probability in [0, 1].
+fn parse_probability(s: &str) -> std::result::Result<f64, String> {
+    let p: f64 = s.parse().map_err(|_| format!("{s:?} is not a number"))?;
+    if (0.0..=1.0).contains(&p) {
+        Ok(p)
+    } else {
+        Err(format!("{p} is not in [0, 1]"))
+    }
 }
 
 /// Which networks and refinement (shared by `register`, `demo`, `eval`).
@@ -270,7 +285,8 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
     let load_seconds = clock.elapsed().as_secs_f64();
 
     let t = Instant::now();
-    let pipeline = args.networks.pipeline(mask.is_none())?;
+    let mut pipeline = args.networks.pipeline(mask.is_none())?;
+    pipeline.options.all_min_confidence = args.min_confidence;
     let networks_seconds = t.elapsed().as_secs_f64();
     let config = json!({
         "seed": seed,
@@ -350,6 +366,7 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
             "pose_bop": bop_pose_json(&r.pose, args.model_unit_mm),
             "pose_normalised": pose_json(&r.pose_normalised),
             "confidence": r.confidence,
+            "calibration": r.calibration,
             "verdict": r.verdict,
             "segmentation": r.segmentation,
             "instance": r.instance,
@@ -372,6 +389,7 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
         "pose_bop": bop_pose_json(&registration.pose, args.model_unit_mm),
         "pose_normalised": pose_json(&registration.pose_normalised),
         "confidence": registration.confidence,
+        "calibration": registration.calibration,
         "verdict": registration.verdict,
         "instances": instances,
         "details": {
