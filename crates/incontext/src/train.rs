@@ -409,6 +409,7 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
     let args = ic_train::seg::TrainArgs {
         preset: "cpu".into(),
         scenes: "room".into(),
+        room_fraction: 0.0,
         init: None,
         objects: c.objects.clone(),
         out: c.out.clone(),

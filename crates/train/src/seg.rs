@@ -212,6 +212,11 @@ pub struct TrainArgs {
     /// `split.json` or a weighted mixture as for train-pose, validation on its `val` objects).
     #[arg(long, default_value = "room")]
     pub scenes: String,
+    /// With `--scenes clutter`: this fraction of the training scenes (drawn per scene, seeded)
+    /// are room scenes of one object of the same corpus instead, so that the network keeps
+    /// finding a lone object in a room. Validation stays on clutter scenes.
+    #[arg(long, default_value_t = 0.0)]
+    pub room_fraction: f64,
     /// See `--scenes`.
     #[arg(long)]
     pub objects: PathBuf,
@@ -378,7 +383,13 @@ pub fn evaluate_network(seg: &Segmenter, views: &[RoomView]) -> Result<MaskMetri
 /// optimiser, iteration 0; the preset's overrides apply), or a fresh network of the preset.
 pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Result<SegTrainer> {
     if args.resume && latest.exists() {
-        return SegTrainer::resume_run(latest, args.iterations);
+        let mut t = SegTrainer::resume_run(latest, args.iterations)?;
+        // As for the pose network: a resumed run may continue at another learning rate.
+        if let Some(lr) = args.learning_rate {
+            tracing::info!("learning rate {} from iteration {}", lr, t.iteration());
+            t.set_learning_rate(lr);
+        }
+        return Ok(t);
     }
     if args.resume {
         tracing::info!("--resume: no {} yet, starting fresh", latest.display());
@@ -427,7 +438,7 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
 /// `train-seg`: trains into `args.out` on the blob-style folder `args.objects` until the
 /// planned iterations are done, the stop flag is set or the deadline passes.
 pub fn train(args: &TrainArgs, control: RunControl<'_>) -> Result<Outcome> {
-    let (train_corpus, val_corpus) = if scene_kind(&args.scenes)? == SceneKind::Clutter {
+    let (train_corpus, val_corpus) = if check_scenes(args)? == SceneKind::Clutter {
         let spec = objects_spec(&args.objects)?;
         (
             crate::pose::open_objects(&spec, Split::Train)?,
@@ -455,6 +466,20 @@ pub enum SceneKind {
     Clutter,
 }
 
+/// `--scenes` and `--room-fraction` (a fraction in [0, 1], only for clutter scenes).
+fn check_scenes(args: &TrainArgs) -> Result<SceneKind> {
+    let kind = scene_kind(&args.scenes)?;
+    if !(0.0..=1.0).contains(&args.room_fraction)
+        || (args.room_fraction > 0.0 && kind != SceneKind::Clutter)
+    {
+        bail!(
+            "--room-fraction {}: a fraction in [0, 1], only with --scenes clutter",
+            args.room_fraction
+        );
+    }
+    Ok(kind)
+}
+
 /// The `--scenes` flag.
 fn scene_kind(scenes: &str) -> Result<SceneKind> {
     match scenes {
@@ -476,18 +501,52 @@ fn objects_spec(objects: &Path) -> Result<crate::objects::ObjectsSpec> {
 enum Source {
     Room(RoomSampleGenerator),
     Clutter(ClutterGenerator),
+    /// Clutter scenes, and room scenes for a `room_fraction` of the indices (drawn from
+    /// `seed` and the index).
+    Mixed {
+        clutter: ClutterGenerator,
+        room: RoomSampleGenerator,
+        room_fraction: f64,
+        seed: u64,
+    },
+}
+
+/// Whether training scene `index` of a mixed run is a room scene: a uniform draw from
+/// (`seed`, `index`) below `room_fraction`.
+pub fn is_room_scene(seed: u64, index: u64, room_fraction: f64) -> bool {
+    let h = ic_data::mix_seed(seed ^ 0x726f_6f6d_6d69_78, index);
+    ((h >> 11) as f64 / (1u64 << 53) as f64) < room_fraction
 }
 
 impl Source {
     fn example(&self, index: u64, cfg: &SegConfig) -> Result<SegExample, ic_data::DataError> {
+        let room = |g: &RoomSampleGenerator| -> Result<_, ic_data::DataError> {
+            let v = g.view_with(&mut CpuRenderer::new(), index)?;
+            Ok(SegExample::new(&v.depth, &v.mask_visib, cfg))
+        };
+        let clutter = |g: &ClutterGenerator| -> Result<_, ic_data::DataError> {
+            let s = g.scene(index)?;
+            Ok(SegExample::from_instances(
+                &s.depth,
+                &s.instances,
+                |id| id < SUPPORT_ID_BASE,
+                cfg,
+            ))
+        };
         let example = match self {
-            Source::Room(g) => {
-                let v = g.view_with(&mut CpuRenderer::new(), index)?;
-                SegExample::new(&v.depth, &v.mask_visib, cfg)
-            }
-            Source::Clutter(g) => {
-                let s = g.scene(index)?;
-                SegExample::from_instances(&s.depth, &s.instances, |id| id < SUPPORT_ID_BASE, cfg)
+            Source::Room(g) => room(g)?,
+            Source::Clutter(g) => clutter(g)?,
+            Source::Mixed {
+                clutter: c,
+                room: r,
+                room_fraction,
+                seed,
+            } => {
+                if is_room_scene(*seed, index, *room_fraction) {
+                    room(r)?
+                } else {
+                    clutter(c)?
+                }
             }
         };
         example.map_err(|e| ic_data::DataError::Sample {
@@ -568,7 +627,7 @@ pub fn train_objects(
         val_corpus.len()
     );
     let (w, h) = (cfg.train.render_width, cfg.train.render_height);
-    let kind = scene_kind(&args.scenes)?;
+    let kind = check_scenes(args)?;
     if (kind == SceneKind::Clutter) != (cfg.net.outputs == 2) {
         bail!(
             "--scenes {} needs a {} network (preset {:?} has {} output(s)): use --preset {}",
@@ -607,10 +666,22 @@ pub fn train_objects(
             let scenes: Vec<ClutterScene> = (0..args.validation_count)
                 .map(|i| val_gen.scene(i))
                 .collect::<Result<_, _>>()?;
-            (
-                Source::Clutter(ClutterGenerator::new(train_corpus, clutter, seed)?),
-                ValidationSet::Clutter(scenes),
-            )
+            let source = if args.room_fraction > 0.0 {
+                tracing::info!(
+                    "room scenes of one object: {:.0} % of the training scenes",
+                    100.0 * args.room_fraction
+                );
+                let room = RoomSampleConfig::default().with_resolution(w, h);
+                Source::Mixed {
+                    room: RoomSampleGenerator::new(train_corpus.clone(), room, seed)?,
+                    clutter: ClutterGenerator::new(train_corpus, clutter, seed)?,
+                    room_fraction: args.room_fraction,
+                    seed,
+                }
+            } else {
+                Source::Clutter(ClutterGenerator::new(train_corpus, clutter, seed)?)
+            };
+            (source, ValidationSet::Clutter(scenes))
         }
     };
     let generator = Arc::new(generator);

@@ -229,6 +229,7 @@ fn seg_args(out: &Path, iterations: u64, resume: bool) -> ic_train::seg::TrainAr
     ic_train::seg::TrainArgs {
         preset: "tiny".into(),
         scenes: "room".into(),
+        room_fraction: 0.0,
         init: None,
         objects: "unused".into(),
         out: out.to_path_buf(),
@@ -293,6 +294,7 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
     let args = ic_train::seg::TrainArgs {
         preset: "tiny-clutter".into(),
         scenes: "clutter".into(),
+        room_fraction: 0.0,
         objects: "procedural@4:1".into(),
         ..seg_args(&out, 2, false)
     };
@@ -317,6 +319,49 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
 }
 
 #[test]
+fn a_clutter_run_mixes_in_room_scenes_in_the_fraction_asked() {
+    // The draw is seeded and uniform: about the fraction asked, the same for the same seed.
+    let rooms = |seed: u64| {
+        (0..4000)
+            .filter(|&i| ic_train::seg::is_room_scene(seed, i, 0.25))
+            .count()
+    };
+    let n = rooms(1);
+    assert!((900..1100).contains(&n), "{n} room scenes of 4000 at 0.25");
+    assert_eq!(rooms(1), n);
+    assert_ne!(rooms(2), n);
+    assert!((0..100).all(|i| !ic_train::seg::is_room_scene(1, i, 0.0)));
+    assert!((0..100).all(|i| ic_train::seg::is_room_scene(1, i, 1.0)));
+    // A mixed run trains; the fraction must be one and only go with clutter scenes.
+    let dir = tempfile::tempdir().unwrap();
+    let args = ic_train::seg::TrainArgs {
+        preset: "tiny-clutter".into(),
+        scenes: "clutter".into(),
+        room_fraction: 0.5,
+        objects: "procedural@4:1".into(),
+        ..seg_args(&dir.path().join("mixed"), 2, false)
+    };
+    let o = ic_train::seg::train(&args, control(never())).unwrap();
+    assert_eq!((o.ending, o.iteration), (Ending::Finished, 2));
+    for (scenes, fraction) in [("clutter", 1.5), ("room", 0.5)] {
+        let bad = ic_train::seg::TrainArgs {
+            preset: if scenes == "room" {
+                "tiny"
+            } else {
+                "tiny-clutter"
+            }
+            .into(),
+            scenes: scenes.into(),
+            room_fraction: fraction,
+            objects: "procedural@4:1".into(),
+            ..seg_args(&dir.path().join(format!("bad-{scenes}")), 2, false)
+        };
+        let err = ic_train::seg::train(&bad, control(never())).unwrap_err();
+        assert!(format!("{err:#}").contains("--room-fraction"), "{err:#}");
+    }
+}
+
+#[test]
 fn a_one_output_checkpoint_starts_a_two_output_network_with_its_head_widened() {
     let dir = tempfile::tempdir().unwrap();
     let room = dir.path().join("room");
@@ -325,6 +370,7 @@ fn a_one_output_checkpoint_starts_a_two_output_network_with_its_head_widened() {
     let args = ic_train::seg::TrainArgs {
         preset: "tiny-clutter".into(),
         scenes: "clutter".into(),
+        room_fraction: 0.0,
         ..seg_args(&dir.path().join("clutter"), 1, false)
     };
     let t = ic_train::seg::make_trainer(&args, &dir.path().join("none"), Some(&init)).unwrap();
@@ -352,4 +398,20 @@ fn a_one_output_checkpoint_starts_a_two_output_network_with_its_head_widened() {
         .err()
         .unwrap();
     assert!(format!("{err:#}").contains("final.safetensors"), "{err:#}");
+}
+
+#[test]
+fn a_resumed_segmentation_run_takes_a_new_learning_rate() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    seg_run(&out, 1, false);
+    let latest = out.join("latest.safetensors");
+    let args = ic_train::seg::TrainArgs {
+        learning_rate: Some(1e-4),
+        ..seg_args(&out, 2, true)
+    };
+    let t = ic_train::seg::make_trainer(&args, &latest, None).unwrap();
+    assert_eq!((t.iteration(), t.config().train.learning_rate), (1, 1e-4));
+    let kept = ic_train::seg::make_trainer(&seg_args(&out, 2, true), &latest, None).unwrap();
+    assert_ne!(kept.config().train.learning_rate, 1e-4);
 }
