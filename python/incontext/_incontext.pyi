@@ -73,6 +73,9 @@ class Result:
     def confidence(self) -> float:
         """In [0, 1]: the calibrated probability that the pose is right."""
     @property
+    def calibration(self) -> str:
+        """"object" (a mask was given), "segmentation" (the network chose the pixels; calibrated on clutter) or "none"."""
+    @property
     def verdict(self) -> str:
         """"ok" or "uncertain" ("not_found" raises NotFoundError)."""
     @property

@@ -762,6 +762,7 @@ struct RegistrationResult {
     /// Millimetres.
     translation: DVec3,
     confidence: f64,
+    calibration: &'static str,
     verdict: &'static str,
     /// (stage, milliseconds).
     timings: Vec<(&'static str, f64)>,
@@ -778,6 +779,7 @@ impl RegistrationResult {
             // As BOP's cam_t_m2c of `incontext register`.
             translation: r.pose.translation * unit_mm,
             confidence: r.confidence,
+            calibration: r.calibration.as_str(),
             verdict: r.verdict.as_str(),
             timings: vec![
                 ("model_points", ms(model_seconds)),
@@ -831,6 +833,14 @@ impl RegistrationResult {
     #[getter]
     fn confidence(&self) -> f64 {
         self.confidence
+    }
+
+    /// Which calibration gave the confidence: "object" (the pixels were given: a mask),
+    /// "segmentation" (the segmentation network chose them; calibrated on cluttered scenes,
+    /// where a good fit may be another object), or "none" (rotations=1: not a probability).
+    #[getter]
+    fn calibration(&self) -> &'static str {
+        self.calibration
     }
 
     /// "ok" (use the pose) or "uncertain" (check it); "not_found" raises NotFoundError.

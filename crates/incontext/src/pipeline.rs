@@ -685,6 +685,17 @@ pub enum CalibrationUsed {
     Segmentation,
 }
 
+impl CalibrationUsed {
+    /// `none`, `object` or `segmentation` (as serialised).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            CalibrationUsed::None => "none",
+            CalibrationUsed::Object => "object",
+            CalibrationUsed::Segmentation => "segmentation",
+        }
+    }
+}
+
 /// Which segmentation instance a registration used ([`Registration::instance`]).
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct InstanceChoice {
