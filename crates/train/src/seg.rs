@@ -902,6 +902,10 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     crate::write_atomic(&out, serde_json::to_string_pretty(&report)?.as_bytes())?;
     let csv = out.with_extension("csv");
     crate::write_atomic(&csv, rows.as_bytes())?;
-    tracing::info!("written {} and {} (one row per scene)", out.display(), csv.display());
+    tracing::info!(
+        "written {} and {} (one row per scene)",
+        out.display(),
+        csv.display()
+    );
     Ok(report)
 }
