@@ -810,7 +810,7 @@ def run_cases(args):
                 model = np.hstack([source, normals]).astype(np.float32)
             except Exception as e:  # noqa: BLE001 - a broken case must not stop the run
                 load_error = error_text(e)
-            stages = {}  # ppf_key -> Stage or the error of the PPF stage, shared within the case
+            stages = {}  # ppf_key -> Stage, or the PPF stage's error: shared within the case
             for m in pending:
                 n += 1
                 rec = {"case": name, "method": PREFIX + m, "R": None, "t": None, "seconds": 0.0,
@@ -820,9 +820,14 @@ def run_cases(args):
                     key = params.ppf_key()
                     try:
                         cv2.setRNGSeed(derived_seed(args.seed, name, m))
-                        if isinstance(stages.get(key), Exception):
+                        if key not in stages:
+                            try:
+                                stages[key] = ppf.detect(params, model, target)
+                            except Exception as e:  # noqa: BLE001
+                                stages[key] = e
+                        if isinstance(stages[key], Exception):
                             raise stages[key]
-                        T, seconds, details, stages[key] = ppf.run(params, model, target, stages.get(key))
+                        T, seconds, details, _ = ppf.run(params, model, target, stages[key])
                         rec["seconds"] = seconds
                         rec["R"], rec["t"] = pose_fields(T)
                         rec["ok"], rec["error"] = True, None
@@ -830,8 +835,6 @@ def run_cases(args):
                             rec["details"] = {"source_points": len(source), "target_points": len(target),
                                               **info, **details}
                     except Exception as e:  # noqa: BLE001
-                        if key not in stages:
-                            stages[key] = e
                         rec["R"] = rec["t"] = None
                         rec["ok"], rec["error"] = False, error_text(e)
                 failures += not rec["ok"]
