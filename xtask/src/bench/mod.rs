@@ -61,7 +61,7 @@ pub struct BenchArgs {
     /// both sets; quick 3). 0: every case (about 2.5 h at the default counts).
     #[arg(long)]
     pub ppf_cases: Option<u64>,
-    /// With --peers: timing repeats of the PPF methods (default: --repeats, at most 3).
+    /// With --peers: timing repeats of the PPF methods (default: --repeats, at most 3; quick 1).
     #[arg(long)]
     pub ppf_repeats: Option<usize>,
     /// Where results.md, results.json and results/ (plots) go. Default: docs/, or
@@ -173,7 +173,10 @@ pub fn run(args: BenchArgs) -> Result<()> {
         noback_count: args.noback_count.unwrap_or(if quick { 20 } else { 500 }),
         room_count: args.room_count.unwrap_or(if quick { 10 } else { 300 }),
         ppf_cases: args.ppf_cases.unwrap_or(if quick { 3 } else { 100 }),
-        ppf_repeats: args.ppf_repeats.unwrap_or(repeats.min(3)).max(1),
+        ppf_repeats: args
+            .ppf_repeats
+            .unwrap_or(if quick { 1 } else { repeats.min(3) })
+            .max(1),
         threads: args.threads.max(1),
         repeats,
         train_steps: args.train_steps.unwrap_or(if quick { 1 } else { 5 }),

@@ -201,7 +201,7 @@ fn set_facts(set: &SetReport) -> String {
         .collect();
     if let Some((lo, med, hi)) = stats(&mut points) {
         s.push_str(&format!(
-            " Scene points: {med:.0} median ({lo:.0}–{hi:.0}); Open3D caps targets at 50 000."
+            " Scene points: {med:.0} median ({lo:.0}–{hi:.0}); the peers cap targets at 50 000."
         ));
     }
     s
@@ -314,7 +314,7 @@ fn speed_section(report: &Report, speed: &Speed) -> String {
         let _ = writeln!(
             s,
             "\nOpenCV {} PPF: cv2.setNumThreads({}), but the PyPI wheel runs its PPF and ICP loops \
-             on one core; median of {} runs after one warm-up. Each time includes training the \
+             on one core; median of {} run(s) after one warm-up. Each time includes training the \
              detector on the n model points (a new model in every case) and the scene normals; \
              `opencv-ppf-icp` adds its ICP to the PPF stage of `opencv-ppf`.",
             t["opencv_version"].as_str().unwrap_or("?"),
