@@ -27,12 +27,13 @@ import argparse
 import json
 import math
 import os
-import platform
 import statistics
 import sys
 import time
-import zlib
 from pathlib import Path
+
+from peers_common import (cap_points, case_dirs, check_results, derived_seed, error_text, log, machine_info,
+                          pose_fields, read_jsonl, resample, synthetic_pair)
 
 METHODS = ["icp-p2p", "icp-p2l", "fpfh-ransac", "fpfh-ransac-icp", "fgr"]
 PREFIX = "o3d-"
@@ -90,25 +91,6 @@ def parse_args(argv=None):
     if args.threads < 0 or args.repeats < 1 or args.max_target_points < 0:
         p.error("--threads, --max-target-points must be >= 0 and --repeats >= 1")
     return args
-
-
-def log(msg):
-    print(msg, file=sys.stderr, flush=True)
-
-
-def case_dirs(root: Path):
-    if not root.is_dir():
-        raise SystemExit(f"--cases {root}: not a folder")
-    dirs = sorted(d for d in root.iterdir() if d.is_dir())
-    if not dirs:
-        raise SystemExit(f"--cases {root}: no case folders")
-    return dirs
-
-
-def derived_seed(seed: int, *parts: str) -> int:
-    """A seed that depends only on (seed, parts): results do not depend on what ran before."""
-    h = zlib.crc32("\x1f".join(parts).encode())
-    return (seed * 1_000_003 + h) % (2**31 - 1)
 
 
 def seed_key(method: str) -> str:
@@ -244,46 +226,6 @@ def read_points(o3d, path: Path):
     return pts
 
 
-def cap_points(pts, max_points: int, seed: int):
-    import numpy as np
-
-    if max_points <= 0 or len(pts) <= max_points:
-        return pts
-    rng = np.random.default_rng(seed)
-    idx = np.sort(rng.choice(len(pts), size=max_points, replace=False))
-    return pts[idx]
-
-
-def pose_fields(T):
-    import numpy as np
-
-    R, t = T[:3, :3], T[:3, 3]
-    if not (np.isfinite(T).all() and np.allclose(R @ R.T, np.eye(3), atol=1e-4) and np.linalg.det(R) > 0):
-        raise ValueError(f"not a rigid transform: {T.tolist()}")
-    return [[float(x) for x in row] for row in R], [float(x) for x in t]
-
-
-def error_text(e: BaseException) -> str:
-    msg = f"{type(e).__name__}: {e}".strip()
-    # Open3D errors carry ANSI colour codes.
-    for code in ("\x1b[1;31m", "\x1b[0;m", "\x1b[0m"):
-        msg = msg.replace(code, "")
-    return msg
-
-
-def machine_info(threads_used):
-    cpu = platform.processor() or ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "logical_cpus": os.cpu_count(), "system": platform.platform(),
-            "python": platform.python_version(), "threads_used": threads_used}
-
-
 # ---------------------------------------------------------------------------------------------
 # Modes
 
@@ -347,106 +289,9 @@ def run_cases(args):
     return 0
 
 
-def read_jsonl(path: Path):
-    recs = []
-    with open(path) as f:
-        for i, line in enumerate(f, 1):
-            if line.strip():
-                try:
-                    recs.append(json.loads(line))
-                except json.JSONDecodeError as e:
-                    recs.append({"_bad_line": i, "_error": str(e)})
-    return recs
-
-
 def check(args):
     """One well-formed line per (case, method); prints the problems, returns 1 if any."""
-    problems = []
-    if not args.out.is_file():
-        print(f"check: {args.out} does not exist")
-        return 1
-    recs = read_jsonl(args.out)
-    expected = {(d.name, PREFIX + m) for d in case_dirs(args.cases)[: args.limit or None] for m in args.methods}
-    seen = {}
-    for i, r in enumerate(recs, 1):
-        if "_bad_line" in r:
-            problems.append(f"line {r['_bad_line']}: not JSON ({r['_error']})")
-            continue
-        key = (r.get("case"), r.get("method"))
-        seen[key] = seen.get(key, 0) + 1
-        missing = [k for k in ("case", "method", "R", "t", "seconds", "ok", "error") if k not in r]
-        if missing:
-            problems.append(f"line {i} {key}: missing keys {missing}")
-            continue
-        if r["ok"]:
-            R, t = r["R"], r["t"]
-            good = (isinstance(R, list) and len(R) == 3 and all(isinstance(row, list) and len(row) == 3 for row in R)
-                    and isinstance(t, list) and len(t) == 3
-                    and all(isinstance(x, (int, float)) and math.isfinite(x) for x in sum(R, []) + t))
-            if not good:
-                problems.append(f"line {i} {key}: ok but R/t malformed")
-            elif r["error"] is not None:
-                problems.append(f"line {i} {key}: ok but error is set")
-        elif not isinstance(r["error"], str):
-            problems.append(f"line {i} {key}: not ok and no error message")
-        if not (isinstance(r["seconds"], (int, float)) and r["seconds"] >= 0):
-            problems.append(f"line {i} {key}: bad seconds {r['seconds']!r}")
-    for key in sorted(expected - seen.keys()):
-        problems.append(f"missing {key}")
-    for key, count in sorted(seen.items(), key=str):
-        if count > 1:
-            problems.append(f"{count} lines for {key}")
-        if key not in expected:
-            problems.append(f"unexpected {key}")
-    ok = sum(1 for r in recs if r.get("ok") is True)
-    for p in problems[:50]:
-        print("check:", p)
-    if len(problems) > 50:
-        print(f"check: … {len(problems) - 50} more")
-    print(f"check: {len(recs)} lines, {len(expected)} expected, {ok} ok, {len(recs) - ok} failed, "
-          f"{len(problems)} problems -> {'PASS' if not problems else 'FAIL'}")
-    return 0 if not problems else 1
-
-
-def synthetic_pair(n: int, seed: int):
-    """n model points on a bumpy closed surface spanning [-1, 1], and n points of an
-    independent sample of the same surface rotated and moved to z = 2.8 with 0.005 noise.
-    The surface and the pose depend on the seed only, the samples on (seed, n)."""
-    import numpy as np
-
-    rng = np.random.default_rng(seed)
-    freqs = rng.normal(size=(6, 3)) * 2.0
-    phases = rng.uniform(0, 2 * np.pi, 6)
-    amps = rng.uniform(0.05, 0.2, 6)
-
-    def sample(k):
-        d = rng.normal(size=(k, 3))
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        r = 1.0 + (amps * np.sin(d @ freqs.T + phases)).sum(axis=1)
-        return d * r[:, None] * np.array([1.0, 0.7, 0.45])
-
-    q = rng.normal(size=4)
-    rng = np.random.default_rng([seed, n])
-    model, observed = sample(n), sample(n)
-    lo, hi = model.min(0), model.max(0)
-    centre, half = (lo + hi) / 2, (hi - lo).max() / 2
-    model, observed = (model - centre) / half, (observed - centre) / half
-    q /= np.linalg.norm(q)
-    w, x, y, z = q
-    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-    target = observed @ R.T + np.array([0.0, 0.0, 2.8]) + rng.normal(scale=0.005, size=observed.shape)
-    return model, target
-
-
-def resample(pts, n, rng):
-    import numpy as np
-
-    if len(pts) >= n:
-        return pts[np.sort(rng.choice(len(pts), size=n, replace=False))]
-    extra = pts[rng.choice(len(pts), size=n - len(pts))] + rng.normal(scale=0.005, size=(n - len(pts), 3))
-    return np.concatenate([pts, extra])
+    return check_results(args.out, args.cases, args.limit, [PREFIX + m for m in args.methods])
 
 
 def timing(args):

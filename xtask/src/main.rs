@@ -5,8 +5,9 @@
 //!   `target/py-venv`), then `cargo xtask bench --quick --strict` (skipped when
 //!   `INCONTEXT_SKIP_BENCH` is set).
 //! - `cargo xtask bench [--quick] [--peers]` measures accuracy and speed of our methods beside
-//!   Open3D's on fixed case sets and writes `docs/results.md` and `docs/results.json` (see
-//!   `bench/`; `--quick` is the small version CI runs, written under `target/bench-quick/`).
+//!   Open3D's and OpenCV's point-pair features on fixed case sets and writes `docs/results.md`
+//!   and `docs/results.json` (see `bench/`; `--quick` is the small version CI runs, written
+//!   under `target/bench-quick/`).
 //!   `cargo xtask bench --criterion [NAME…]` (or `cargo xtask bench NAME…`) runs the criterion
 //!   benchmarks under `benches/` (all by default), then prints each benchmark's median next to
 //!   its ratio to the baseline measured in the same run, and writes the same table to
@@ -74,9 +75,9 @@ enum Cmd {
     /// bench (`bench --quick --strict`; set INCONTEXT_SKIP_BENCH to skip it). This is the
     /// README's test command and what CI runs.
     Test,
-    /// Accuracy and speed of our methods and Open3D's on fixed case sets → docs/results.md
-    /// (`--quick`: the small version, under target/bench-quick/); `--criterion [NAME…]` runs the
-    /// criterion benchmarks instead.
+    /// Accuracy and speed of our methods, Open3D's and OpenCV PPF's on fixed case sets →
+    /// docs/results.md (`--quick`: the small version, under target/bench-quick/);
+    /// `--criterion [NAME…]` runs the criterion benchmarks instead.
     Bench(bench::BenchArgs),
     /// Write fixed test sets (object alone and in the room) as BOP datasets with a manifest.
     GenData(data::GenDataArgs),

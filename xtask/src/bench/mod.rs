@@ -7,6 +7,8 @@
 //! 2. ours — `incontext eval --cases DIR --method M --out FILE` for the four methods, and on the
 //!    room set the same with `--gt-mask` (the upper bound) when the CLI has it (`run`);
 //! 3. peers (`--peers`) — `benches/peers/open3d_peers.py` on the same folders, and its timing
+//!    mode; `benches/peers/ppf_peers.py` (OpenCV's point-pair features) on the first
+//!    `--ppf-cases` cases of each folder (about 10 s a case, some take minutes), and its timing
 //!    mode;
 //! 4. speed — registration time at 512/1024/2048 points, segmentation at 640×480, renderer
 //!    views/s and training pairs/hour, measured in this process (`speed`);
@@ -50,9 +52,18 @@ pub struct BenchArgs {
     /// runs; writes under target/bench-quick/ instead of docs/.
     #[arg(long)]
     pub quick: bool,
-    /// Also run the Open3D peers (benches/peers; needs target/peers-venv, see its README).
+    /// Also run the Open3D and OpenCV PPF peers (benches/peers; needs target/peers-venv, see its
+    /// README).
     #[arg(long)]
     pub peers: bool,
+    /// With --peers: OpenCV's PPF methods run on the first N cases of each set only (about 10 s
+    /// a case for the three on one core, some objects take minutes; default 100, about 35 min for
+    /// both sets; quick 3). 0: every case (about 2.5 h at the default counts).
+    #[arg(long)]
+    pub ppf_cases: Option<u64>,
+    /// With --peers: timing repeats of the PPF methods (default: --repeats, at most 3; quick 1).
+    #[arg(long)]
+    pub ppf_repeats: Option<usize>,
     /// Where results.md, results.json and results/ (plots) go. Default: docs/, or
     /// target/bench-quick/ with --quick.
     #[arg(long)]
@@ -87,7 +98,8 @@ pub struct BenchArgs {
     /// The incontext binary. Default: `cargo build -p incontext`, then target/debug/incontext.
     #[arg(long)]
     pub incontext: Option<PathBuf>,
-    /// Python with open3d. Default: target/peers-venv/bin/python.
+    /// Python with open3d and opencv-contrib-python-headless. Default:
+    /// target/peers-venv/bin/python.
     #[arg(long)]
     pub python: Option<PathBuf>,
     /// Reuse result files of an earlier run that hold a line for every case, instead of
@@ -153,14 +165,20 @@ pub fn run(args: BenchArgs) -> Result<()> {
         .out
         .clone()
         .unwrap_or_else(|| root.join(if quick { "target/bench-quick" } else { "docs" }));
+    let repeats = args.repeats.unwrap_or(if quick { 2 } else { 10 });
     let config = Config {
         quick,
         peers: args.peers,
         seed: args.seed,
         noback_count: args.noback_count.unwrap_or(if quick { 20 } else { 500 }),
         room_count: args.room_count.unwrap_or(if quick { 10 } else { 300 }),
+        ppf_cases: args.ppf_cases.unwrap_or(if quick { 3 } else { 100 }),
+        ppf_repeats: args
+            .ppf_repeats
+            .unwrap_or(if quick { 1 } else { repeats.min(3) })
+            .max(1),
         threads: args.threads.max(1),
-        repeats: args.repeats.unwrap_or(if quick { 2 } else { 10 }),
+        repeats,
         train_steps: args.train_steps.unwrap_or(if quick { 1 } else { 5 }),
         out: out.clone(),
         work: work.clone(),
@@ -219,6 +237,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
 
     // 3. Peers.
     let mut python = None;
+    let mut ppf_python = None;
     if config.peers {
         let t0 = Instant::now();
         match run::probe_python(&root, args.python.as_deref()) {
@@ -253,8 +272,65 @@ pub fn run(args: BenchArgs) -> Result<()> {
                             method: format!("o3d-{m}"),
                             peer: true,
                             gt_mask: false,
+                            case_limit: None,
                             status: RunStatus::Missing {
                                 reason: format!("the peers' Python is not set up ({why})"),
+                            },
+                        });
+                    }
+                }
+            }
+        }
+        match run::probe_ppf_python(&root, args.python.as_deref()) {
+            Ok((py, version)) => {
+                report.opencv_version = Some(version);
+                for cs in &sets {
+                    let dir = work.join("runs").join(cs.set.name());
+                    let limit = if config.ppf_cases == 0 {
+                        cs.count
+                    } else {
+                        config.ppf_cases
+                    };
+                    runs.extend(run::run_ppf(
+                        &root,
+                        &py,
+                        cs,
+                        &objects,
+                        &dir,
+                        limit,
+                        config.threads,
+                        config.seed,
+                        config.resume,
+                    )?);
+                }
+                if matches!(objects, Objects::Procedural(_)) {
+                    report.notes.push(
+                        "The objects are procedural (no mesh files): OpenCV PPF's model normals \
+                         were estimated on the model points (`--model-normals estimate`), not \
+                         taken from the mesh."
+                            .into(),
+                    );
+                }
+                ppf_python = Some(py);
+            }
+            Err(why) => {
+                let note = format!(
+                    "OpenCV PPF peers skipped: {why}. Install them with: {}",
+                    run::PEERS_INSTALL
+                );
+                eprintln!("{note}");
+                report.notes.push(note);
+                for cs in &sets {
+                    for m in run::PPF_METHODS {
+                        runs.push(MethodRun {
+                            set: cs.set,
+                            label: format!("opencv-{m}"),
+                            method: format!("opencv-{m}"),
+                            peer: true,
+                            gt_mask: false,
+                            case_limit: None,
+                            status: RunStatus::Missing {
+                                reason: format!("the peers' Python has no OpenCV PPF ({why})"),
                             },
                         });
                     }
@@ -264,7 +340,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
         report.stage("peers", t0.elapsed().as_secs_f64());
     } else {
         report.notes.push(
-            "Open3D peers were not run (pass --peers): the tables hold our methods only.".into(),
+            "The Open3D and OpenCV PPF peers were not run (pass --peers): the tables hold our \
+             methods only."
+                .into(),
         );
     }
 
@@ -298,6 +376,26 @@ pub fn run(args: BenchArgs) -> Result<()> {
                 Err(e) => {
                     tracing::error!("Open3D timing failed: {e}");
                     report.notes.push(format!("Open3D timing failed: {e}"));
+                }
+            }
+        }
+        if let Some(py) = &ppf_python {
+            let file = work.join("runs/ppf-timing.json");
+            match run::run_ppf_timing(
+                &root,
+                py,
+                noback,
+                &objects,
+                &file,
+                &speed::SIZES,
+                config.ppf_repeats,
+                config.threads,
+                config.seed,
+            ) {
+                Ok(v) => report.ppf_timing = Some(v),
+                Err(e) => {
+                    tracing::error!("OpenCV PPF timing failed: {e}");
+                    report.notes.push(format!("OpenCV PPF timing failed: {e}"));
                 }
             }
         }

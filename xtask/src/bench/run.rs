@@ -1,9 +1,10 @@
-//! Stages 2 and 3 of `cargo xtask bench`: our methods through `incontext eval --cases` and the
-//! Open3D peers through `benches/peers/open3d_peers.py`, each as a subprocess writing JSONL.
+//! Stages 2 and 3 of `cargo xtask bench`: our methods through `incontext eval --cases`, the
+//! Open3D peers through `benches/peers/open3d_peers.py` and OpenCV's point-pair-feature peers
+//! through `benches/peers/ppf_peers.py`, each as a subprocess writing JSONL.
 //!
 //! Nothing here scores: the files go to `ic_eval::cases`. A method that cannot run (its model
-//! file is absent, the CLI lacks the command, Python lacks Open3D) is recorded with the reason
-//! and the bench goes on.
+//! file is absent, the CLI lacks the command, Python lacks Open3D or OpenCV) is recorded with the
+//! reason and the bench goes on.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -11,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 
-use crate::bench::cases::{CaseSet, Set};
+use crate::bench::cases::{CaseSet, Objects, Set};
 
 /// Our methods, as `incontext eval --method` names them, with the head they need.
 pub const OUR_METHODS: [(&str, &str); 6] = [
@@ -31,6 +32,11 @@ pub const PEER_METHODS: [&str; 5] = [
     "fpfh-ransac-icp",
     "fgr",
 ];
+
+/// OpenCV methods of the PPF peers' script (their lines say `opencv-<name>`). They take
+/// about 10 s a case on one core (some objects take minutes), so they run on the first
+/// `--ppf-cases` cases of each set only.
+pub const PPF_METHODS: [&str; 3] = ["ppf", "ppf-icp", "ppf-tuned"];
 
 /// The shipped model a head uses, relative to the workspace root.
 pub fn pose_model(head: &str) -> PathBuf {
@@ -65,6 +71,9 @@ pub struct MethodRun {
     pub method: String,
     pub peer: bool,
     pub gt_mask: bool,
+    /// Scored on the first this many cases of the set only (the slow PPF peers); `None`: all.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub case_limit: Option<u64>,
     #[serde(flatten)]
     pub status: RunStatus,
 }
@@ -218,6 +227,7 @@ pub fn run_ours(
                 method: method.to_string(),
                 peer: false,
                 gt_mask,
+                case_limit: None,
                 status: RunStatus::Missing {
                     reason: String::new(),
                 },
@@ -306,8 +316,14 @@ pub fn run_ours(
     Ok(out)
 }
 
-/// The Python that runs the peers, if it can import open3d; else the reason.
-pub fn probe_python(root: &Path, given: Option<&Path>) -> Result<(PathBuf, String), String> {
+/// The Python that runs the peers (`given`, else `target/peers-venv/bin/python`) if it runs
+/// `code`, which prints the library's version; else the reason.
+fn probe_import(
+    root: &Path,
+    given: Option<&Path>,
+    what: &str,
+    code: &str,
+) -> Result<(PathBuf, String), String> {
     let python = given
         .map(Path::to_path_buf)
         .unwrap_or_else(|| root.join("target/peers-venv/bin/python"));
@@ -315,7 +331,7 @@ pub fn probe_python(root: &Path, given: Option<&Path>) -> Result<(PathBuf, Strin
         return Err(format!("{} does not exist", python.display()));
     }
     match Command::new(&python)
-        .args(["-c", "import open3d, sys; print(open3d.__version__)"])
+        .args(["-c", code])
         .stdin(Stdio::null())
         .output()
     {
@@ -324,7 +340,7 @@ pub fn probe_python(root: &Path, given: Option<&Path>) -> Result<(PathBuf, Strin
             String::from_utf8_lossy(&o.stdout).trim().to_string(),
         )),
         Ok(o) => Err(format!(
-            "{} cannot import open3d: {}",
+            "{} cannot import {what}: {}",
             python.display(),
             String::from_utf8_lossy(&o.stderr)
                 .lines()
@@ -335,7 +351,28 @@ pub fn probe_python(root: &Path, given: Option<&Path>) -> Result<(PathBuf, Strin
     }
 }
 
-/// The command that installs the peers' environment.
+/// The Python that runs the Open3D peers, if it can import open3d; else the reason.
+pub fn probe_python(root: &Path, given: Option<&Path>) -> Result<(PathBuf, String), String> {
+    probe_import(
+        root,
+        given,
+        "open3d",
+        "import open3d; print(open3d.__version__)",
+    )
+}
+
+/// The Python that runs the PPF peers, if it has OpenCV with the contrib module
+/// `ppf_match_3d`; else the reason.
+pub fn probe_ppf_python(root: &Path, given: Option<&Path>) -> Result<(PathBuf, String), String> {
+    probe_import(
+        root,
+        given,
+        "cv2.ppf_match_3d (opencv-contrib-python-headless)",
+        "import cv2; cv2.ppf_match_3d; print(cv2.__version__)",
+    )
+}
+
+/// The command that installs the peers' environment (Open3D and OpenCV).
 pub const PEERS_INSTALL: &str = "python3 -m venv target/peers-venv && \
     target/peers-venv/bin/pip install -r benches/peers/requirements.txt \
     (on a minimal Debian also: apt-get install libusb-1.0-0)";
@@ -386,25 +423,7 @@ pub fn run_peers(
         )
     };
     let status = status.and_then(|wall| {
-        let o = Command::new(python)
-            .current_dir(root)
-            .arg(&script)
-            .arg("--check")
-            .arg("--cases")
-            .arg(&cases.dir)
-            .arg("--out")
-            .arg(&file)
-            .stdin(Stdio::null())
-            .output()
-            .map_err(|e| format!("--check cannot start: {e}"))?;
-        if o.status.success() {
-            Ok(wall)
-        } else {
-            Err(format!(
-                "--check failed:\n{}",
-                String::from_utf8_lossy(&o.stdout)
-            ))
-        }
+        script_check(root, python, &script, &cases.dir, &file, &[]).map(|()| wall)
     });
     Ok(PEER_METHODS
         .iter()
@@ -414,6 +433,7 @@ pub fn run_peers(
             method: format!("o3d-{m}"),
             peer: true,
             gt_mask: false,
+            case_limit: None,
             status: match &status {
                 Ok(wall) => RunStatus::Ran {
                     file: file.clone(),
@@ -464,6 +484,169 @@ pub fn run_peer_timing(
     eprintln!("== Open3D timing at {sizes_arg} points, {repeats} repeats");
     let log = crate::bench::cases::sibling(out, "log");
     run_with_progress(cmd, &log, out, 0, "open3d timing")?;
+    let text = std::fs::read_to_string(out).map_err(|e| format!("{}: {e}", out.display()))?;
+    serde_json::from_str(&text).map_err(|e| format!("{}: {e}", out.display()))
+}
+
+/// The peers' script's `--check` of `file` (one well-formed line per case and method); `extra`
+/// are the script's options that select the cases and methods.
+fn script_check(
+    root: &Path,
+    python: &Path,
+    script: &Path,
+    cases: &Path,
+    file: &Path,
+    extra: &[String],
+) -> Result<(), String> {
+    let o = Command::new(python)
+        .current_dir(root)
+        .arg(script)
+        .arg("--check")
+        .arg("--cases")
+        .arg(cases)
+        .arg("--out")
+        .arg(file)
+        .args(extra)
+        .stdin(Stdio::null())
+        .output()
+        .map_err(|e| format!("--check cannot start: {e}"))?;
+    if o.status.success() {
+        Ok(())
+    } else {
+        Err(format!(
+            "--check failed:\n{}",
+            String::from_utf8_lossy(&o.stdout)
+        ))
+    }
+}
+
+/// How the PPF script finds the model's normals: the mesh folder the cases were exported
+/// from, or (procedural objects have no mesh file) normals estimated on the model points.
+fn ppf_normals_args(objects: &Objects) -> Vec<String> {
+    match objects {
+        Objects::Folder(dir) => vec!["--objects".into(), dir.display().to_string()],
+        Objects::Procedural(_) => vec!["--model-normals".into(), "estimate".into()],
+    }
+}
+
+/// Runs OpenCV's three PPF methods on the first `limit` cases of `cases` (one process, one
+/// file), then the script's --check. Their lines are scored on those cases only.
+#[allow(clippy::too_many_arguments)]
+pub fn run_ppf(
+    root: &Path,
+    python: &Path,
+    cases: &CaseSet,
+    objects: &Objects,
+    runs: &Path,
+    limit: u64,
+    threads: usize,
+    seed: u64,
+    resume: bool,
+) -> Result<Vec<MethodRun>> {
+    std::fs::create_dir_all(runs).with_context(|| format!("creating {}", runs.display()))?;
+    let file = runs.join("ppf.jsonl");
+    let script = root.join("benches/peers/ppf_peers.py");
+    let limit = limit.min(cases.count);
+    let expected = limit * PPF_METHODS.len() as u64;
+    let limit_args = vec!["--limit".to_string(), limit.to_string()];
+    let reused = resume && count_lines(&file) as u64 == expected;
+    let status = if reused {
+        tracing::info!(set = cases.set.name(), file = %file.display(), "reusing the PPF results");
+        Ok(0.0)
+    } else {
+        let mut cmd = Command::new(python);
+        cmd.current_dir(root)
+            .arg(&script)
+            .arg("--cases")
+            .arg(&cases.dir)
+            .arg("--out")
+            .arg(&file)
+            .args(["--threads", &threads.to_string()])
+            .args(["--seed", &seed.to_string()])
+            .args(["--max-target-points", "50000"])
+            .args(&limit_args)
+            .args(ppf_normals_args(objects));
+        if resume {
+            cmd.arg("--resume");
+        }
+        eprintln!(
+            "== {} OpenCV PPF peers ({}) on the first {limit} cases",
+            cases.set.name(),
+            PPF_METHODS.join(", ")
+        );
+        run_with_progress(
+            cmd,
+            &runs.join("ppf.log"),
+            &file,
+            expected,
+            &format!("{} opencv ppf", cases.set.name()),
+        )
+    };
+    let status = status.and_then(|wall| {
+        script_check(root, python, &script, &cases.dir, &file, &limit_args).map(|()| wall)
+    });
+    Ok(PPF_METHODS
+        .iter()
+        .map(|m| MethodRun {
+            set: cases.set,
+            label: format!("opencv-{m}"),
+            method: format!("opencv-{m}"),
+            peer: true,
+            gt_mask: false,
+            case_limit: Some(limit),
+            status: match &status {
+                Ok(wall) => RunStatus::Ran {
+                    file: file.clone(),
+                    wall_seconds: *wall,
+                    reused,
+                },
+                Err(reason) => RunStatus::Failed {
+                    reason: reason.clone(),
+                },
+            },
+        })
+        .collect())
+}
+
+/// The PPF script's timing mode on the first case of `cases` resampled to each size (the same
+/// pairs as Open3D's); the parsed JSON.
+#[allow(clippy::too_many_arguments)]
+pub fn run_ppf_timing(
+    root: &Path,
+    python: &Path,
+    cases: &CaseSet,
+    objects: &Objects,
+    out: &Path,
+    sizes: &[usize],
+    repeats: usize,
+    threads: usize,
+    seed: u64,
+) -> Result<serde_json::Value, String> {
+    let first = ic_data::export::CaseFolder::new(&cases.dir)
+        .child(0)
+        .dir()
+        .to_path_buf();
+    let sizes_arg = sizes
+        .iter()
+        .map(|s| s.to_string())
+        .collect::<Vec<_>>()
+        .join(",");
+    let mut cmd = Command::new(python);
+    cmd.current_dir(root)
+        .arg(root.join("benches/peers/ppf_peers.py"))
+        .arg("--timing")
+        .args(["--points", &sizes_arg])
+        .args(["--repeats", &repeats.to_string()])
+        .args(["--threads", &threads.to_string()])
+        .args(["--seed", &seed.to_string()])
+        .args(ppf_normals_args(objects))
+        .arg("--cases")
+        .arg(&first)
+        .arg("--out")
+        .arg(out);
+    eprintln!("== OpenCV PPF timing at {sizes_arg} points, {repeats} repeats");
+    let log = crate::bench::cases::sibling(out, "log");
+    run_with_progress(cmd, &log, out, 0, "opencv ppf timing")?;
     let text = std::fs::read_to_string(out).map_err(|e| format!("{}: {e}", out.display()))?;
     serde_json::from_str(&text).map_err(|e| format!("{}: {e}", out.display()))
 }

@@ -13,7 +13,7 @@ use serde_json::Value;
 use super::{Report, SetReport};
 use crate::bench::cases::Set;
 use crate::bench::common::write_atomic;
-use crate::bench::run::PEER_METHODS;
+use crate::bench::run::{PEER_METHODS, PPF_METHODS};
 use crate::bench::speed::{SIZES, Speed, Timed};
 
 fn fmt_s(v: Option<f64>) -> String {
@@ -37,13 +37,14 @@ fn accuracy_at(s: &MethodScore, deg: f64) -> f64 {
 }
 
 /// The goal's verdicts: for each set and 10°/15°, whether each of our methods (full pipeline,
-/// not the ground-truth-mask upper bound) beats every Open3D method.
+/// not the ground-truth-mask upper bound) beats every Open3D method. The best OpenCV PPF method
+/// is shown beside them (it is not part of the goal's definition).
 fn goal_section(report: &Report) -> String {
     let mut s = String::new();
     let mut any_pair = false;
     let mut lines = Vec::new();
     let mut table = String::from(
-        "| set | threshold | best of ours | best Open3D | every shipped model of ours beats every Open3D method? |\n|---|---|---|---|---|\n",
+        "| set | threshold | best of ours | best Open3D | every shipped model of ours beats every Open3D method? | best OpenCV PPF (its cases) |\n|---|---|---|---|---|---|\n",
     );
     for set in &report.sets {
         let ours: Vec<&MethodScore> = set
@@ -78,6 +79,22 @@ fn goal_section(report: &Report) -> String {
             };
             let (bo, bo_acc) = best(&ours);
             let (bp, bp_acc) = best(&peers);
+            let ppf: Vec<&MethodScore> = set
+                .scores
+                .iter()
+                .filter(|m| m.method().starts_with("opencv-"))
+                .collect();
+            let ppf_cell = if ppf.is_empty() {
+                "not run".to_string()
+            } else {
+                let (bc, bc_acc) = best(&ppf);
+                let n = ppf
+                    .iter()
+                    .map(|m| m.result.summary.count)
+                    .max()
+                    .unwrap_or(0);
+                format!("{bc} {bc_acc:.3} ({n})")
+            };
             let losers: Vec<String> = ours
                 .iter()
                 .filter(|m| accuracy_at(m, deg) <= bp_acc)
@@ -91,7 +108,7 @@ fn goal_section(report: &Report) -> String {
                 format!("**no** — not {}", losers.join(", "))
             };
             table.push_str(&format!(
-                "| {} | {deg}° | {bo} {bo_acc:.3} | {bp} {bp_acc:.3} | {verdict} |\n",
+                "| {} | {deg}° | {bo} {bo_acc:.3} | {bp} {bp_acc:.3} | {verdict} | {ppf_cell} |\n",
                 set.set.name()
             ));
             if bo_acc <= bp_acc {
@@ -106,7 +123,9 @@ fn goal_section(report: &Report) -> String {
         "The goal: every shipped model of ours beats every Open3D method in rotation accuracy at \
          10° and 15° on both sets (room: the full pipeline, segmentation → pose; the \
          ground-truth-mask rows are an upper bound and do not count). Each of our methods present \
-         in the tables is compared with the best Open3D method.\n\n",
+         in the tables is compared with the best Open3D method. The last column, not part of the \
+         goal, gives the best OpenCV point-pair-feature method on the cases it ran on (the first \
+         ones of the set; its accuracy is over those only).\n\n",
     );
     if any_pair {
         s.push_str(&table);
@@ -182,7 +201,7 @@ fn set_facts(set: &SetReport) -> String {
         .collect();
     if let Some((lo, med, hi)) = stats(&mut points) {
         s.push_str(&format!(
-            " Scene points: {med:.0} median ({lo:.0}–{hi:.0}); Open3D caps targets at 50 000."
+            " Scene points: {med:.0} median ({lo:.0}–{hi:.0}); the peers cap targets at 50 000."
         ));
     }
     s
@@ -246,6 +265,29 @@ fn speed_section(report: &Report, speed: &Speed) -> String {
             methods.push((name, times, String::new()));
         }
     }
+    if let Some(t) = &report.ppf_timing {
+        for m in PPF_METHODS {
+            let name = format!("opencv-{m}");
+            let times = SIZES.iter().map(|&n| report.ppf_median(&name, n)).collect();
+            let errors: Vec<String> = t["results"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .filter(|r| r["method"] == name.as_str())
+                .filter_map(|r| {
+                    r["error"]
+                        .as_str()
+                        .map(|e| format!("{} pts: {e}", r["points"]))
+                })
+                .collect();
+            let note = if errors.is_empty() {
+                "training the detector on the model included".to_string()
+            } else {
+                errors.join("; ")
+            };
+            methods.push((name, times, note));
+        }
+    }
     for (m, times, note) in &methods {
         let _ = write!(s, "| {m} |");
         for t in times {
@@ -266,6 +308,18 @@ fn speed_section(report: &Report, speed: &Speed) -> String {
             t["open3d_version"].as_str().unwrap_or("?"),
             t["threads"],
             t["machine"]["python"].as_str().unwrap_or("?")
+        );
+    }
+    if let Some(t) = &report.ppf_timing {
+        let _ = writeln!(
+            s,
+            "\nOpenCV {} PPF: cv2.setNumThreads({}), but the PyPI wheel runs its PPF and ICP loops \
+             on one core; median of {} run(s) after one warm-up. Each time includes training the \
+             detector on the n model points (a new model in every case) and the scene normals; \
+             `opencv-ppf-icp` adds its ICP to the PPF stage of `opencv-ppf`.",
+            t["opencv_version"].as_str().unwrap_or("?"),
+            t["threads"],
+            t["repeats"]
         );
     }
     let icp1024 = icp(1024);
@@ -358,7 +412,7 @@ fn markdown(report: &Report, plots: &[(Set, Vec<PathBuf>)]) -> String {
     );
     let _ = writeln!(
         s,
-        "- Seed {} (case sets, our CLI's point sampling, Open3D's RANSAC, timing pairs); {} \
+        "- Seed {} (case sets, our CLI's point sampling, the peers' RANSAC, timing pairs); {} \
          object-alone cases and {} room scenes{}; {} thread(s) for every method; objects: {}.",
         c.seed,
         c.noback_count,
@@ -389,6 +443,17 @@ fn markdown(report: &Report, plots: &[(Set, Vec<PathBuf>)]) -> String {
     if let Some(v) = &report.open3d_version {
         let _ = writeln!(s, "- Open3D {v} (benches/peers/open3d_peers.py).");
     }
+    if let Some(v) = &report.opencv_version {
+        let _ = writeln!(
+            s,
+            "- OpenCV {v} (benches/peers/ppf_peers.py), on the first {} cases of each set.",
+            if c.ppf_cases == 0 {
+                "all".to_string()
+            } else {
+                c.ppf_cases.to_string()
+            }
+        );
+    }
     for n in &report.notes {
         let _ = writeln!(s, "- {n}");
     }
@@ -403,14 +468,16 @@ fn markdown(report: &Report, plots: &[(Set, Vec<PathBuf>)]) -> String {
             Set::Noback => {
                 "Methods: ours (`incontext eval --cases`): the pose network with the softmax or OT \
                  head, one-shot (weighted Procrustes) or refined by ICP; Open3D: point-to-point and \
-                 point-to-plane ICP from the identity, FPFH + RANSAC, FPFH + RANSAC + ICP, FGR \
-                 (benches/peers/README.md gives every parameter)."
+                 point-to-plane ICP from the identity, FPFH + RANSAC, FPFH + RANSAC + ICP, FGR; \
+                 OpenCV: point-pair features (Drost et al. 2010) with the parameters of OpenCV's \
+                 sample, the same refined by OpenCV's ICP, and a variant tuned on validation cases \
+                 of training objects (benches/peers/README.md gives every parameter)."
             }
             Set::Room => {
                 "Ours runs the full pipeline (segmentation → pose) on the depth map; the \
                  \"(gt mask)\" rows use the ground-truth visible mask instead (an upper bound for \
-                 the segmentation). Open3D registers the model against the whole scene cloud \
-                 (capped at 50 000 points)."
+                 the segmentation). Open3D and OpenCV PPF register the model against the whole \
+                 scene cloud (capped at 50 000 points)."
             }
         };
         let _ = writeln!(s, "{what}\n");
@@ -418,6 +485,23 @@ fn markdown(report: &Report, plots: &[(Set, Vec<PathBuf>)]) -> String {
             s.push_str("No method produced results on this set.\n");
         } else {
             s.push_str(&ic_eval::cases::markdown_cases_table(&set.scores));
+            let limited: Vec<String> = report
+                .runs
+                .iter()
+                .filter(|r| r.set == set.set)
+                .filter_map(|r| r.case_limit.filter(|&l| l < set.count).map(|l| (r, l)))
+                .filter(|(r, _)| set.scores.iter().any(|m| m.method() == r.label))
+                .map(|(r, l)| format!("{} ({l})", r.label))
+                .collect();
+            if !limited.is_empty() {
+                let _ = writeln!(
+                    s,
+                    "\nScored on the first cases of the set only (`--ppf-cases`; the `cases` \
+                     column gives how many): {}. Their accuracies are over those cases and \
+                     compare with the others' only roughly.",
+                    limited.join(", ")
+                );
+            }
         }
         if let Some((_, files)) = plots.iter().find(|p| p.0 == set.set) {
             s.push('\n');
@@ -534,4 +618,101 @@ pub fn write(report: &Report, out: &Path) -> Result<Vec<PathBuf>> {
     write_atomic(&md, markdown(report, &plots).as_bytes())?;
     written.insert(0, md);
     Ok(written)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bench::cases::CaseSet;
+    use crate::bench::report::Config;
+    use crate::bench::run::{MethodRun, RunStatus};
+    use ic_eval::cases::ResultLine;
+    use ic_geometry::Pose;
+    use ic_geometry::glam::DVec3;
+
+    /// Two cases; a PPF peer with lines for the first only and `case_limit` 1 is scored on that
+    /// one case (not failed on the second), an Open3D peer with the same lines is not; the
+    /// tables say so, and the goal table shows the best PPF method beside Open3D's.
+    #[test]
+    fn limited_peers_are_scored_on_their_cases_and_shown() {
+        let tmp = crate::bench::common::tests::TempDir::new("report");
+        let cases = tmp.path().join("cases");
+        let truth = Pose::from_translation(DVec3::new(0.0, 0.0, 2.8));
+        for name in ["case_00000", "case_00001"] {
+            let d = cases.join(name);
+            std::fs::create_dir_all(&d).unwrap();
+            let gt = serde_json::json!({"R": truth.rotation_row_major(), "t": [0.0, 0.0, 2.8]});
+            std::fs::write(d.join("gt.json"), gt.to_string()).unwrap();
+        }
+        let file = tmp.path().join("peers.jsonl");
+        let text: String = ["opencv-ppf", "o3d-fgr", "ours-ot"]
+            .iter()
+            .map(|m| {
+                serde_json::to_string(&ResultLine::from_pose("case_00000", m, &truth, 1.0)).unwrap()
+                    + "\n"
+            })
+            .collect();
+        std::fs::write(&file, text).unwrap();
+        let set = CaseSet {
+            set: Set::Noback,
+            dir: cases,
+            count: 2,
+            written: false,
+            cases: Vec::new(),
+        };
+        let run = |label: &str, peer: bool, case_limit: Option<u64>| MethodRun {
+            set: Set::Noback,
+            label: label.into(),
+            method: label.into(),
+            peer,
+            gt_mask: false,
+            case_limit,
+            status: RunStatus::Ran {
+                file: file.clone(),
+                wall_seconds: 1.0,
+                reused: false,
+            },
+        };
+        let config = Config {
+            quick: true,
+            peers: true,
+            seed: 1,
+            noback_count: 2,
+            room_count: 1,
+            ppf_cases: 1,
+            ppf_repeats: 1,
+            threads: 1,
+            repeats: 1,
+            train_steps: 1,
+            out: tmp.path().into(),
+            work: tmp.path().into(),
+            objects: serde_json::json!({"kind": "procedural", "count": 3}),
+            speed: false,
+            resume: false,
+        };
+        let mut report = Report::start(&crate::workspace_root(), &config);
+        report.opencv_version = Some("4.11.0".into());
+        let runs = vec![
+            run("ours-ot", true, None),
+            run("o3d-fgr", true, None),
+            run("opencv-ppf", true, Some(1)),
+        ];
+        report.score(&[set], runs).unwrap();
+        let scores = &report.sets[0].scores;
+        let by = |m: &str| scores.iter().find(|s| s.method() == m).unwrap();
+        let ppf = by("opencv-ppf");
+        assert_eq!(
+            (ppf.result.summary.count, ppf.scored, ppf.missing),
+            (1, 1, 0)
+        );
+        let fgr = by("o3d-fgr");
+        assert_eq!(
+            (fgr.result.summary.count, fgr.scored, fgr.missing),
+            (2, 1, 1)
+        );
+        let md = markdown(&report, &[]);
+        assert!(md.contains("opencv-ppf (1)"), "{md}");
+        assert!(md.contains("| opencv-ppf 1.000 (1) |"), "{md}");
+        assert!(md.contains("OpenCV 4.11.0 (benches/peers/ppf_peers.py), on the first 1 cases"));
+    }
 }

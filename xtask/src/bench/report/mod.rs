@@ -31,6 +31,10 @@ pub struct Config {
     pub seed: u64,
     pub noback_count: u64,
     pub room_count: u64,
+    /// OpenCV's PPF peers run on the first this many cases of each set (0: all).
+    pub ppf_cases: u64,
+    /// Timing repeats of the PPF peers.
+    pub ppf_repeats: usize,
     pub threads: usize,
     pub repeats: usize,
     pub train_steps: usize,
@@ -64,12 +68,16 @@ pub struct Report {
     pub models: Vec<Value>,
     pub cli: Option<Cli>,
     pub open3d_version: Option<String>,
+    /// OpenCV's version when the PPF peers ran.
+    pub opencv_version: Option<String>,
     pub notes: Vec<String>,
     pub stages: Vec<(String, f64)>,
     pub runs: Vec<MethodRun>,
     pub sets: Vec<SetReport>,
     pub speed: Option<Speed>,
     pub open3d_timing: Option<Value>,
+    /// `ppf_peers.py --timing`'s JSON.
+    pub ppf_timing: Option<Value>,
     pub total_seconds: f64,
 }
 
@@ -102,12 +110,14 @@ impl Report {
             models,
             cli: None,
             open3d_version: None,
+            opencv_version: None,
             notes: Vec::new(),
             stages: Vec::new(),
             runs: Vec::new(),
             sets: Vec::new(),
             speed: None,
             open3d_timing: None,
+            ppf_timing: None,
             total_seconds: 0.0,
         }
     }
@@ -177,7 +187,11 @@ impl Report {
                     ));
                     continue;
                 }
-                match score_results(&truths, &lines) {
+                // The slow peers ran on the first cases only: score them on those.
+                let n = run
+                    .case_limit
+                    .map_or(truths.len(), |l| (l as usize).min(truths.len()));
+                match score_results(&truths[..n], &lines) {
                     Ok(mut s) => report.scores.append(&mut s),
                     Err(e) => report.missing.push((run.label.clone(), e.to_string())),
                 }
@@ -190,11 +204,20 @@ impl Report {
     }
 
     pub(super) fn open3d_median(&self, method: &str, points: usize) -> Option<f64> {
-        self.open3d_timing.as_ref()?["results"]
-            .as_array()?
-            .iter()
-            .find(|r| r["method"] == method && r["points"].as_u64() == Some(points as u64))?
-            ["median_seconds"]
-            .as_f64()
+        timing_median(self.open3d_timing.as_ref()?, method, points)
     }
+
+    pub(super) fn ppf_median(&self, method: &str, points: usize) -> Option<f64> {
+        timing_median(self.ppf_timing.as_ref()?, method, points)
+    }
+}
+
+/// The median seconds of `method` at `points` in a peers' script's timing JSON.
+fn timing_median(timing: &Value, method: &str, points: usize) -> Option<f64> {
+    timing["results"]
+        .as_array()?
+        .iter()
+        .find(|r| r["method"] == method && r["points"].as_u64() == Some(points as u64))?
+        ["median_seconds"]
+        .as_f64()
 }
