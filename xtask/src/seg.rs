@@ -45,6 +45,10 @@ pub struct PostArgs {
     depth_jump: Option<f32>,
     #[arg(long)]
     min_pixels: Option<usize>,
+    /// Two-output networks: the instance-core probability from which a pixel seeds an
+    /// instance.
+    #[arg(long)]
+    core_threshold: Option<f32>,
 }
 
 /// `cargo xtask seg-post`: writes the weights of `--model` with new post-processing settings
@@ -67,6 +71,9 @@ pub fn set_post(args: PostArgs) -> Result<()> {
     }
     if let Some(v) = args.min_pixels {
         p.min_pixels = v;
+    }
+    if let Some(v) = args.core_threshold {
+        p.core_threshold = v;
     }
     cfg.validate()?;
     // Only the network's tensors: a training checkpoint's Adam moments are left behind.
