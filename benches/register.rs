@@ -64,6 +64,27 @@ fn baseline(c: &mut Criterion) {
     });
 }
 
+/// `register` (the segmentation network choosing the pixels) on the scenes in turn.
+fn bench_scenes(
+    group: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>,
+    label: &str,
+    pipeline: &Pipeline,
+    scenes: &[(DepthImage, Intrinsics, Object)],
+) {
+    let mut i = 0usize;
+    group.bench_function(label, |b| {
+        b.iter(|| {
+            let (depth, k, object) = &scenes[i % scenes.len()];
+            i += 1;
+            black_box(
+                pipeline
+                    .register_depth_normalised(object, depth, k, None, 0)
+                    .is_ok(),
+            )
+        })
+    });
+}
+
 fn register(c: &mut Criterion) {
     let scenes: Vec<_> = (1..=3).map(scene).collect();
     let pipeline = |rotations: usize| {
@@ -76,19 +97,7 @@ fn register(c: &mut Criterion) {
     let mut group = c.benchmark_group("register_640x480");
     group.sample_size(10);
     for (label, rotations) in [("verified_k24", 24), ("paper_k1", 1)] {
-        let pipeline = pipeline(rotations);
-        let mut i = 0usize;
-        group.bench_function(label, |b| {
-            b.iter(|| {
-                let (depth, k, object) = &scenes[i % scenes.len()];
-                i += 1;
-                black_box(
-                    pipeline
-                        .register_depth_normalised(object, depth, k, None, 0)
-                        .is_ok(),
-                )
-            })
-        });
+        bench_scenes(&mut group, label, &pipeline(rotations), &scenes);
     }
     group.finish();
     // The split per stage for each rotation count K, averaged over the scenes (two passes
@@ -176,18 +185,7 @@ fn register_clutter(c: &mut Criterion) {
     let pipeline = Pipeline::builder().seg_model(&seg).build().unwrap();
     let mut group = c.benchmark_group("register_640x480");
     group.sample_size(10);
-    let mut i = 0usize;
-    group.bench_function("clutter15_verified_k24", |b| {
-        b.iter(|| {
-            let (depth, k, object) = &scenes[i % scenes.len()];
-            i += 1;
-            black_box(
-                pipeline
-                    .register_depth_normalised(object, depth, k, None, 0)
-                    .is_ok(),
-            )
-        })
-    });
+    bench_scenes(&mut group, "clutter15_verified_k24", &pipeline, &scenes);
     group.finish();
     for (depth, k, object) in &scenes {
         match pipeline.register_depth_normalised(object, depth, k, None, 0) {

@@ -1076,6 +1076,25 @@ impl Pipeline {
         intrinsics: &Intrinsics,
         seed: u64,
     ) -> Result<Vec<Registration>> {
+        self.instances_or_none(
+            object,
+            depth_normalised,
+            intrinsics,
+            seed,
+            InstanceSearch::AllOk,
+        )
+    }
+
+    /// [`Pipeline::register_instances`] on the pipeline's threads, with the input checked; an
+    /// empty list instead of a not-found error.
+    fn instances_or_none(
+        &self,
+        object: &Object,
+        depth_normalised: &DepthImage,
+        intrinsics: &Intrinsics,
+        seed: u64,
+        search: InstanceSearch,
+    ) -> Result<Vec<Registration>> {
         self.in_pool(|| {
             check_depth_input(depth_normalised, intrinsics)?;
             match self.register_instances(
@@ -1084,7 +1103,7 @@ impl Pipeline {
                 intrinsics,
                 seed,
                 Instant::now(),
-                InstanceSearch::AllOk,
+                search,
             ) {
                 Ok(found) => Ok(found),
                 Err(PipelineError::NotFound(_)) => Ok(Vec::new()),
@@ -1107,21 +1126,13 @@ impl Pipeline {
         limit: usize,
         seed: u64,
     ) -> Result<Vec<Registration>> {
-        self.in_pool(|| {
-            check_depth_input(depth_normalised, intrinsics)?;
-            match self.register_instances(
-                object,
-                depth_normalised,
-                intrinsics,
-                seed,
-                Instant::now(),
-                InstanceSearch::Every { limit },
-            ) {
-                Ok(found) => Ok(found),
-                Err(PipelineError::NotFound(_)) => Ok(Vec::new()),
-                Err(e) => Err(e),
-            }
-        })
+        self.instances_or_none(
+            object,
+            depth_normalised,
+            intrinsics,
+            seed,
+            InstanceSearch::Every { limit },
+        )
     }
 
     /// [`Pipeline::register_depth_all_normalised`] for a depth map in the object's units.

@@ -108,21 +108,14 @@ fn register_all_returns_each_instance_of_the_model_best_first() {
     let camera = s(&dir.path().join("camera.json")).to_string();
     // The confidence of a network-segmented instance is calibrated on clutter, where a fit of
     // moderate quality is often another object: ask for every instance from 0.2 on.
-    let o = incontext(&[
-        "register",
-        "--model",
-        &model,
-        "--depth",
-        &depth,
-        "--camera",
-        &camera,
-        "--all",
-        "--min-confidence",
-        "0.2",
-        "--json",
-        "--seed",
-        "1",
-    ]);
+    let register_all = |extra: &[&str]| {
+        let mut args = vec![
+            "register", "--model", &model, "--depth", &depth, "--camera", &camera, "--all",
+        ];
+        args.extend_from_slice(extra);
+        incontext(&args)
+    };
+    let o = register_all(&["--min-confidence", "0.2", "--json", "--seed", "1"]);
     assert!(
         o.status.code() == Some(0) || o.status.code() == Some(4),
         "{}",
@@ -164,25 +157,19 @@ fn register_all_returns_each_instance_of_the_model_best_first() {
     );
     assert_eq!(report["pose"], instances[0]["pose"]);
     // --min-confidence is for --all, and a probability.
-    let o = incontext(&[
-        "register",
-        "--model",
-        &model,
-        "--depth",
-        &depth,
-        "--camera",
-        &camera,
-        "--all",
-        "--min-confidence",
-        "1.5",
-    ]);
-    assert_exit(o, &[], 2, &["--min-confidence", "1.5"]);
+    assert_exit(
+        register_all(&["--min-confidence", "1.5"]),
+        &[],
+        2,
+        &["--min-confidence", "1.5"],
+    );
     // --all needs the network's instances.
-    let o = incontext(&[
-        "register", "--model", &model, "--depth", &depth, "--camera", &camera, "--all", "--mask",
-        &depth,
-    ]);
-    assert_exit(o, &[], 2, &["--all", "--mask"]);
+    assert_exit(
+        register_all(&["--mask", &depth]),
+        &[],
+        2,
+        &["--all", "--mask"],
+    );
 }
 
 #[test]

@@ -504,8 +504,8 @@ enum Source {
     /// Clutter scenes, and room scenes for a `room_fraction` of the indices (drawn from
     /// `seed` and the index).
     Mixed {
-        clutter: ClutterGenerator,
-        room: RoomSampleGenerator,
+        clutter: Box<ClutterGenerator>,
+        room: Box<RoomSampleGenerator>,
         room_fraction: f64,
         seed: u64,
     },
@@ -514,7 +514,7 @@ enum Source {
 /// Whether training scene `index` of a mixed run is a room scene: a uniform draw from
 /// (`seed`, `index`) below `room_fraction`.
 pub fn is_room_scene(seed: u64, index: u64, room_fraction: f64) -> bool {
-    let h = ic_data::mix_seed(seed ^ 0x726f_6f6d_6d69_78, index);
+    let h = ic_data::mix_seed(seed ^ 0x0072_6f6f_6d6d_6978, index);
     ((h >> 11) as f64 / (1u64 << 53) as f64) < room_fraction
 }
 
@@ -673,8 +673,8 @@ pub fn train_objects(
                 );
                 let room = RoomSampleConfig::default().with_resolution(w, h);
                 Source::Mixed {
-                    room: RoomSampleGenerator::new(train_corpus.clone(), room, seed)?,
-                    clutter: ClutterGenerator::new(train_corpus, clutter, seed)?,
+                    room: Box::new(RoomSampleGenerator::new(train_corpus.clone(), room, seed)?),
+                    clutter: Box::new(ClutterGenerator::new(train_corpus, clutter, seed)?),
                     room_fraction: args.room_fraction,
                     seed,
                 }
