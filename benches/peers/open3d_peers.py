@@ -27,13 +27,13 @@ import argparse
 import json
 import math
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
 
-from peers_common import (cap_points, case_dirs, check_results, derived_seed, error_text, log, machine_info,
-                          pose_fields, read_jsonl, resample, synthetic_pair)
+from peers_common import (cap_points, case_dirs, case_record, check_results, derived_seed, error_text, log,
+                          machine_info, record_failure, record_pose, resample, resume_done, synthetic_pair,
+                          timing_record, write_record, write_report)
 
 METHODS = ["icp-p2p", "icp-p2l", "fpfh-ransac", "fpfh-ransac-icp", "fgr"]
 PREFIX = "o3d-"
@@ -242,10 +242,7 @@ def run_cases(args):
               "open3d": o3d.__version__, "case_count": len(dirs), **pipe.config()}
     print(f"open3d_peers seed {args.seed} config {json.dumps(config)}", flush=True)
 
-    done = set()
-    if args.resume and args.out.exists():
-        for rec in read_jsonl(args.out):
-            done.add((rec.get("case"), rec.get("method")))
+    done = resume_done(args.out, args.resume)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     total = len(dirs) * len(args.methods)
     n = failures = 0
@@ -266,25 +263,17 @@ def run_cases(args):
                 load_error = error_text(e)
             for m in pending:
                 n += 1
-                rec = {"case": name, "method": PREFIX + m, "R": None, "t": None, "seconds": 0.0,
-                       "ok": False, "error": load_error}
+                rec = case_record(name, PREFIX + m, load_error)
                 if load_error is None:
                     try:
                         o3d.utility.random.seed(derived_seed(args.seed, name, seed_key(m)))
                         T, seconds, details = pipe.run(m, source, target)
-                        rec["seconds"] = seconds
-                        rec["R"], rec["t"] = pose_fields(T)
-                        rec["ok"], rec["error"] = True, None
+                        record_pose(rec, T, seconds)
                         if args.details:
                             rec["details"] = {"source_points": len(source), "target_points": len(target), **details}
                     except Exception as e:  # noqa: BLE001
-                        rec["R"] = rec["t"] = None
-                        rec["ok"], rec["error"] = False, error_text(e)
-                failures += not rec["ok"]
-                out.write(json.dumps(rec) + "\n")
-                out.flush()
-                status = "ok" if rec["ok"] else f"FAILED: {rec['error']}"
-                log(f"[{n}/{total}] {name} {PREFIX + m} {rec['seconds']:.3f}s {status}")
+                        record_failure(rec, e)
+                failures += write_record(out, rec, n, total)
     log(f"done: {total} results, {failures} failed, {time.perf_counter() - started:.1f}s, wrote {args.out}")
     return 0
 
@@ -328,21 +317,13 @@ def timing(args):
                     runs.append(seconds)
             except Exception as e:  # noqa: BLE001
                 error = error_text(e)
-            rec = {"method": PREFIX + m, "points": n,
-                   "median_seconds": statistics.median(runs) if runs else None,
-                   "min_seconds": min(runs) if runs else None, "runs": runs, "ok": error is None, "error": error,
-                   "source_down": details.get("source_down"), "target_down": details.get("target_down")}
-            results.append(rec)
-            med = f"{rec['median_seconds']:.4f}s" if runs else f"FAILED: {error}"
-            log(f"[{k}/{total}] {PREFIX + m} n={n} median {med}")
+            results.append(timing_record(PREFIX + m, n, runs, error, k, total,
+                                         source_down=details.get("source_down"),
+                                         target_down=details.get("target_down")))
     report = {"machine": machine_info(o3d.utility.get_max_threads()), "open3d_version": o3d.__version__,
               "threads": args.threads or o3d.utility.get_max_threads(), "seed": args.seed,
               "repeats": args.repeats, "pair": config["pair"], "config": pipe.config(), "results": results}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(args.out.name + ".tmp")
-    tmp.write_text(json.dumps(report, indent=2) + "\n")
-    tmp.replace(args.out)
-    log(f"wrote {args.out}")
+    write_report(args.out, report)
     return 0
 
 

@@ -142,6 +142,62 @@ def check_results(out: Path, cases: Path, limit: int, methods) -> int:
     return 0 if not problems else 1
 
 
+def resume_done(out: Path, resume: bool):
+    """The (case, method) pairs already in `out` when resuming; else none."""
+    if resume and out.exists():
+        return {(r.get("case"), r.get("method")) for r in read_jsonl(out)}
+    return set()
+
+
+def case_record(name: str, method: str, error):
+    """A result line that has not (yet) succeeded: `error` is why (None until a method runs)."""
+    return {"case": name, "method": method, "R": None, "t": None, "seconds": 0.0, "ok": False, "error": error}
+
+
+def record_pose(rec, T, seconds):
+    """Fills `rec` with the pose `T` found in `seconds` (raises, as pose_fields, on a bad one)."""
+    rec["seconds"] = seconds
+    rec["R"], rec["t"] = pose_fields(T)
+    rec["ok"], rec["error"] = True, None
+
+
+def record_failure(rec, e: BaseException):
+    rec["R"] = rec["t"] = None
+    rec["ok"], rec["error"] = False, error_text(e)
+
+
+def write_record(out, rec, n: int, total: int) -> bool:
+    """Writes `rec` as the `n`-th of `total` lines and logs it; whether it failed."""
+    out.write(json.dumps(rec) + "\n")
+    out.flush()
+    status = "ok" if rec["ok"] else f"FAILED: {rec['error']}"
+    log(f"[{n}/{total}] {rec['case']} {rec['method']} {rec['seconds']:.3f}s {status}")
+    return not rec["ok"]
+
+
+def timing_record(method: str, n: int, runs, error, k: int, total: int, **extra):
+    """One timing result (method at `n` points: the seconds of each repeat, or the error),
+    logged as the `k`-th of `total`; `extra` are the script's own fields."""
+    import statistics
+
+    rec = {"method": method, "points": n,
+           "median_seconds": statistics.median(runs) if runs else None,
+           "min_seconds": min(runs) if runs else None, "runs": runs, "ok": error is None, "error": error,
+           **extra}
+    med = f"{rec['median_seconds']:.4f}s" if runs else f"FAILED: {error}"
+    log(f"[{k}/{total}] {method} n={n} median {med}")
+    return rec
+
+
+def write_report(out: Path, report):
+    """Writes the timing `report` to `out` (through a temporary file) and logs it."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(json.dumps(report, indent=2) + "\n")
+    tmp.replace(out)
+    log(f"wrote {out}")
+
+
 def synthetic_pair(n: int, seed: int, with_normals: bool = False):
     """n model points on a bumpy closed surface spanning [-1, 1], and n points of an
     independent sample of the same surface rotated and moved to z = 2.8 with 0.005 noise.

@@ -31,13 +31,13 @@ import argparse
 import dataclasses
 import json
 import math
-import statistics
 import sys
 import time
 from pathlib import Path
 
-from peers_common import (cap_points, case_dirs, check_results, derived_seed, error_text, log, machine_info,
-                          pose_fields, read_jsonl, resample_indices, synthetic_pair)
+from peers_common import (cap_points, case_dirs, case_record, check_results, derived_seed, error_text, log,
+                          machine_info, record_failure, record_pose, resample_indices, resume_done, synthetic_pair,
+                          timing_record, write_record, write_report)
 
 METHODS = ["ppf", "ppf-icp", "ppf-tuned"]
 PREFIX = "opencv-"
@@ -787,9 +787,7 @@ def run_cases(args):
               "params": params_config(args)}
     print(f"ppf_peers seed {args.seed} config {json.dumps(config)}", flush=True)
 
-    done = set()
-    if args.resume and args.out.exists():
-        done = {(r.get("case"), r.get("method")) for r in read_jsonl(args.out)}
+    done = resume_done(args.out, args.resume)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     total = len(dirs) * len(args.methods)
     n = failures = 0
@@ -813,8 +811,7 @@ def run_cases(args):
             stages = {}  # ppf_key -> Stage, or the PPF stage's error: shared within the case
             for m in pending:
                 n += 1
-                rec = {"case": name, "method": PREFIX + m, "R": None, "t": None, "seconds": 0.0,
-                       "ok": False, "error": load_error}
+                rec = case_record(name, PREFIX + m, load_error)
                 if load_error is None:
                     params = args.params[m]
                     key = params.ppf_key()
@@ -828,20 +825,13 @@ def run_cases(args):
                         if isinstance(stages[key], Exception):
                             raise stages[key]
                         T, seconds, details, _ = ppf.run(params, model, target, stages[key])
-                        rec["seconds"] = seconds
-                        rec["R"], rec["t"] = pose_fields(T)
-                        rec["ok"], rec["error"] = True, None
+                        record_pose(rec, T, seconds)
                         if args.details:
                             rec["details"] = {"source_points": len(source), "target_points": len(target),
                                               **info, **details}
                     except Exception as e:  # noqa: BLE001
-                        rec["R"] = rec["t"] = None
-                        rec["ok"], rec["error"] = False, error_text(e)
-                failures += not rec["ok"]
-                out.write(json.dumps(rec) + "\n")
-                out.flush()
-                status = "ok" if rec["ok"] else f"FAILED: {rec['error']}"
-                log(f"[{n}/{total}] {name} {PREFIX + m} {rec['seconds']:.3f}s {status}")
+                        record_failure(rec, e)
+                failures += write_record(out, rec, n, total)
     log(f"done: {total} results, {failures} failed, {time.perf_counter() - started:.1f}s, wrote {args.out}")
     return 0
 
@@ -897,22 +887,14 @@ def timing(args):
                     runs.append(seconds)
             except Exception as e:  # noqa: BLE001
                 error = error_text(e)
-            rec = {"method": PREFIX + m, "points": n,
-                   "median_seconds": statistics.median(runs) if runs else None,
-                   "min_seconds": min(runs) if runs else None, "runs": runs, "ok": error is None, "error": error,
-                   "scene_points": details.get("scene_points"), "train_seconds": details.get("train_seconds"),
-                   "match_seconds": details.get("match_seconds")}
-            results.append(rec)
-            med = f"{rec['median_seconds']:.4f}s" if runs else f"FAILED: {error}"
-            log(f"[{k}/{total}] {PREFIX + m} n={n} median {med}")
+            results.append(timing_record(PREFIX + m, n, runs, error, k, total,
+                                         scene_points=details.get("scene_points"),
+                                         train_seconds=details.get("train_seconds"),
+                                         match_seconds=details.get("match_seconds")))
     report = {"machine": machine_info(cv2.getNumThreads()), "opencv_version": cv2.__version__,
               "threads": args.threads or cv2.getNumThreads(), "seed": args.seed, "repeats": args.repeats,
               "pair": config["pair"], "config": config["params"], "results": results}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(args.out.name + ".tmp")
-    tmp.write_text(json.dumps(report, indent=2) + "\n")
-    tmp.replace(args.out)
-    log(f"wrote {args.out}")
+    write_report(args.out, report)
     return 0
 
 

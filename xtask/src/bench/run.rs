@@ -377,8 +377,31 @@ pub const PEERS_INSTALL: &str = "python3 -m venv target/peers-venv && \
     target/peers-venv/bin/pip install -r benches/peers/requirements.txt \
     (on a minimal Debian also: apt-get install libusb-1.0-0)";
 
-/// Runs the five Open3D methods on `cases` (one process, one file), then the script's --check.
-pub fn run_peers(
+/// One peer script's run over a case set: what differs between the Open3D and PPF runners.
+struct ScriptRun<'a> {
+    /// The script, relative to the workspace root.
+    script: &'a str,
+    /// The stem of its `.jsonl` and `.log` files in `runs`.
+    stem: &'a str,
+    /// Its methods, and the prefix of their names in the lines (`o3d`, `opencv`).
+    methods: &'a [&'a str],
+    prefix: &'a str,
+    /// Options after the common ones; `check_args` are those the `--check` needs too.
+    extra: Vec<String>,
+    check_args: Vec<String>,
+    /// Lines expected in the file when it is complete.
+    expected: u64,
+    case_limit: Option<u64>,
+    /// Its name in the "reusing" log line, the banner and the progress label.
+    reuse_name: &'a str,
+    banner: String,
+    progress: &'a str,
+}
+
+/// Runs `run.script` on `cases` (one process, one file, resumed or reused where asked), then
+/// the script's --check; one [`MethodRun`] per method.
+#[allow(clippy::too_many_arguments)]
+fn run_script(
     root: &Path,
     python: &Path,
     cases: &CaseSet,
@@ -386,14 +409,19 @@ pub fn run_peers(
     threads: usize,
     seed: u64,
     resume: bool,
+    run: ScriptRun<'_>,
 ) -> Result<Vec<MethodRun>> {
     std::fs::create_dir_all(runs).with_context(|| format!("creating {}", runs.display()))?;
-    let file = runs.join("open3d.jsonl");
-    let script = root.join("benches/peers/open3d_peers.py");
-    let expected = cases.count * PEER_METHODS.len() as u64;
-    let reused = resume && count_lines(&file) as u64 == expected;
+    let file = runs.join(format!("{}.jsonl", run.stem));
+    let script = root.join(run.script);
+    let reused = resume && count_lines(&file) as u64 == run.expected;
     let status = if reused {
-        tracing::info!(set = cases.set.name(), file = %file.display(), "reusing the Open3D results");
+        tracing::info!(
+            set = cases.set.name(),
+            file = %file.display(),
+            "reusing the {} results",
+            run.reuse_name
+        );
         Ok(0.0)
     } else {
         let mut cmd = Command::new(python);
@@ -405,35 +433,33 @@ pub fn run_peers(
             .arg(&file)
             .args(["--threads", &threads.to_string()])
             .args(["--seed", &seed.to_string()])
-            .args(["--max-target-points", "50000"]);
+            .args(["--max-target-points", "50000"])
+            .args(&run.extra);
         if resume {
             cmd.arg("--resume");
         }
-        eprintln!(
-            "== {} Open3D peers ({})",
-            cases.set.name(),
-            PEER_METHODS.join(", ")
-        );
+        eprintln!("{}", run.banner);
         run_with_progress(
             cmd,
-            &runs.join("open3d.log"),
+            &runs.join(format!("{}.log", run.stem)),
             &file,
-            expected,
-            &format!("{} open3d", cases.set.name()),
+            run.expected,
+            &format!("{} {}", cases.set.name(), run.progress),
         )
     };
     let status = status.and_then(|wall| {
-        script_check(root, python, &script, &cases.dir, &file, &[]).map(|()| wall)
+        script_check(root, python, &script, &cases.dir, &file, &run.check_args).map(|()| wall)
     });
-    Ok(PEER_METHODS
+    Ok(run
+        .methods
         .iter()
         .map(|m| MethodRun {
             set: cases.set,
-            label: format!("o3d-{m}"),
-            method: format!("o3d-{m}"),
+            label: format!("{}-{m}", run.prefix),
+            method: format!("{}-{m}", run.prefix),
             peer: true,
             gt_mask: false,
-            case_limit: None,
+            case_limit: run.case_limit,
             status: match &status {
                 Ok(wall) => RunStatus::Ran {
                     file: file.clone(),
@@ -448,11 +474,17 @@ pub fn run_peers(
         .collect())
 }
 
-/// Open3D's timing mode on the first case of `cases` resampled to each size; the parsed JSON.
+/// A peer script's timing mode on the first case of `cases` resampled to each size; `extra`
+/// are the script's own options (after the common ones), `name` its name in the banner and
+/// `progress` in the progress line. The parsed JSON.
 #[allow(clippy::too_many_arguments)]
-pub fn run_peer_timing(
+fn script_timing(
     root: &Path,
     python: &Path,
+    script: &str,
+    extra: &[String],
+    name: &str,
+    progress: &str,
     cases: &CaseSet,
     out: &Path,
     sizes: &[usize],
@@ -471,21 +503,80 @@ pub fn run_peer_timing(
         .join(",");
     let mut cmd = Command::new(python);
     cmd.current_dir(root)
-        .arg(root.join("benches/peers/open3d_peers.py"))
+        .arg(root.join(script))
         .arg("--timing")
         .args(["--points", &sizes_arg])
         .args(["--repeats", &repeats.to_string()])
         .args(["--threads", &threads.to_string()])
         .args(["--seed", &seed.to_string()])
+        .args(extra)
         .arg("--cases")
         .arg(&first)
         .arg("--out")
         .arg(out);
-    eprintln!("== Open3D timing at {sizes_arg} points, {repeats} repeats");
+    eprintln!("== {name} timing at {sizes_arg} points, {repeats} repeats");
     let log = crate::bench::cases::sibling(out, "log");
-    run_with_progress(cmd, &log, out, 0, "open3d timing")?;
+    run_with_progress(cmd, &log, out, 0, progress)?;
     let text = std::fs::read_to_string(out).map_err(|e| format!("{}: {e}", out.display()))?;
     serde_json::from_str(&text).map_err(|e| format!("{}: {e}", out.display()))
+}
+
+/// Runs the five Open3D methods on `cases` (one process, one file), then the script's --check.
+pub fn run_peers(
+    root: &Path,
+    python: &Path,
+    cases: &CaseSet,
+    runs: &Path,
+    threads: usize,
+    seed: u64,
+    resume: bool,
+) -> Result<Vec<MethodRun>> {
+    let run = ScriptRun {
+        script: "benches/peers/open3d_peers.py",
+        stem: "open3d",
+        methods: &PEER_METHODS,
+        prefix: "o3d",
+        extra: Vec::new(),
+        check_args: Vec::new(),
+        expected: cases.count * PEER_METHODS.len() as u64,
+        case_limit: None,
+        reuse_name: "Open3D",
+        banner: format!(
+            "== {} Open3D peers ({})",
+            cases.set.name(),
+            PEER_METHODS.join(", ")
+        ),
+        progress: "open3d",
+    };
+    run_script(root, python, cases, runs, threads, seed, resume, run)
+}
+
+/// Open3D's timing mode on the first case of `cases` resampled to each size; the parsed JSON.
+#[allow(clippy::too_many_arguments)]
+pub fn run_peer_timing(
+    root: &Path,
+    python: &Path,
+    cases: &CaseSet,
+    out: &Path,
+    sizes: &[usize],
+    repeats: usize,
+    threads: usize,
+    seed: u64,
+) -> Result<serde_json::Value, String> {
+    script_timing(
+        root,
+        python,
+        "benches/peers/open3d_peers.py",
+        &[],
+        "Open3D",
+        "open3d timing",
+        cases,
+        out,
+        sizes,
+        repeats,
+        threads,
+        seed,
+    )
 }
 
 /// The peers' script's `--check` of `file` (one well-formed line per case and method); `extra`
@@ -543,69 +634,28 @@ pub fn run_ppf(
     seed: u64,
     resume: bool,
 ) -> Result<Vec<MethodRun>> {
-    std::fs::create_dir_all(runs).with_context(|| format!("creating {}", runs.display()))?;
-    let file = runs.join("ppf.jsonl");
-    let script = root.join("benches/peers/ppf_peers.py");
     let limit = limit.min(cases.count);
-    let expected = limit * PPF_METHODS.len() as u64;
     let limit_args = vec!["--limit".to_string(), limit.to_string()];
-    let reused = resume && count_lines(&file) as u64 == expected;
-    let status = if reused {
-        tracing::info!(set = cases.set.name(), file = %file.display(), "reusing the PPF results");
-        Ok(0.0)
-    } else {
-        let mut cmd = Command::new(python);
-        cmd.current_dir(root)
-            .arg(&script)
-            .arg("--cases")
-            .arg(&cases.dir)
-            .arg("--out")
-            .arg(&file)
-            .args(["--threads", &threads.to_string()])
-            .args(["--seed", &seed.to_string()])
-            .args(["--max-target-points", "50000"])
-            .args(&limit_args)
-            .args(ppf_normals_args(objects));
-        if resume {
-            cmd.arg("--resume");
-        }
-        eprintln!(
+    let mut extra = limit_args.clone();
+    extra.extend(ppf_normals_args(objects));
+    let run = ScriptRun {
+        script: "benches/peers/ppf_peers.py",
+        stem: "ppf",
+        methods: &PPF_METHODS,
+        prefix: "opencv",
+        extra,
+        check_args: limit_args,
+        expected: limit * PPF_METHODS.len() as u64,
+        case_limit: Some(limit),
+        reuse_name: "PPF",
+        banner: format!(
             "== {} OpenCV PPF peers ({}) on the first {limit} cases",
             cases.set.name(),
             PPF_METHODS.join(", ")
-        );
-        run_with_progress(
-            cmd,
-            &runs.join("ppf.log"),
-            &file,
-            expected,
-            &format!("{} opencv ppf", cases.set.name()),
-        )
+        ),
+        progress: "opencv ppf",
     };
-    let status = status.and_then(|wall| {
-        script_check(root, python, &script, &cases.dir, &file, &limit_args).map(|()| wall)
-    });
-    Ok(PPF_METHODS
-        .iter()
-        .map(|m| MethodRun {
-            set: cases.set,
-            label: format!("opencv-{m}"),
-            method: format!("opencv-{m}"),
-            peer: true,
-            gt_mask: false,
-            case_limit: Some(limit),
-            status: match &status {
-                Ok(wall) => RunStatus::Ran {
-                    file: file.clone(),
-                    wall_seconds: *wall,
-                    reused,
-                },
-                Err(reason) => RunStatus::Failed {
-                    reason: reason.clone(),
-                },
-            },
-        })
-        .collect())
+    run_script(root, python, cases, runs, threads, seed, resume, run)
 }
 
 /// The PPF script's timing mode on the first case of `cases` resampled to each size (the same
@@ -622,31 +672,18 @@ pub fn run_ppf_timing(
     threads: usize,
     seed: u64,
 ) -> Result<serde_json::Value, String> {
-    let first = ic_data::export::CaseFolder::new(&cases.dir)
-        .child(0)
-        .dir()
-        .to_path_buf();
-    let sizes_arg = sizes
-        .iter()
-        .map(|s| s.to_string())
-        .collect::<Vec<_>>()
-        .join(",");
-    let mut cmd = Command::new(python);
-    cmd.current_dir(root)
-        .arg(root.join("benches/peers/ppf_peers.py"))
-        .arg("--timing")
-        .args(["--points", &sizes_arg])
-        .args(["--repeats", &repeats.to_string()])
-        .args(["--threads", &threads.to_string()])
-        .args(["--seed", &seed.to_string()])
-        .args(ppf_normals_args(objects))
-        .arg("--cases")
-        .arg(&first)
-        .arg("--out")
-        .arg(out);
-    eprintln!("== OpenCV PPF timing at {sizes_arg} points, {repeats} repeats");
-    let log = crate::bench::cases::sibling(out, "log");
-    run_with_progress(cmd, &log, out, 0, "opencv ppf timing")?;
-    let text = std::fs::read_to_string(out).map_err(|e| format!("{}: {e}", out.display()))?;
-    serde_json::from_str(&text).map_err(|e| format!("{}: {e}", out.display()))
+    script_timing(
+        root,
+        python,
+        "benches/peers/ppf_peers.py",
+        &ppf_normals_args(objects),
+        "OpenCV PPF",
+        "opencv ppf timing",
+        cases,
+        out,
+        sizes,
+        repeats,
+        threads,
+        seed,
+    )
 }
