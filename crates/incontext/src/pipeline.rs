@@ -1065,8 +1065,9 @@ impl Pipeline {
 
     /// Every instance of the object in `depth` (normalised units, as
     /// [`Pipeline::register_depth_normalised`]): each instance the segmentation network finds
-    /// whose size fits the model is registered, and those whose verdict is `ok` are returned,
-    /// best first (verdict, confidence, render-and-compare score); when none is `ok`, the best
+    /// whose size fits the model is registered, and those whose verdict is `ok` (or whose
+    /// confidence reaches [`PipelineOptions::all_min_confidence`]) are returned, best first
+    /// (verdict, confidence, render-and-compare score); when there is none, the best
     /// `uncertain` one alone. Two registrations of one object (ADD-S between their poses below
     /// 0.1 of the diameter) keep the better. An empty list when none is found.
     pub fn register_depth_all_normalised(
