@@ -74,7 +74,7 @@ class Result:
         """In [0, 1]: the calibrated probability that the pose is right."""
     @property
     def calibration(self) -> str:
-        """"object" (a mask was given), "segmentation" (the network chose the pixels; calibrated on clutter) or "none"."""
+        """"object" (a mask was given, or one instance only), "segmentation" (the network chose among several instances; calibrated on clutter) or "none"."""
     @property
     def verdict(self) -> str:
         """"ok" or "uncertain" ("not_found" raises NotFoundError)."""

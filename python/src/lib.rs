@@ -835,9 +835,10 @@ impl RegistrationResult {
         self.confidence
     }
 
-    /// Which calibration gave the confidence: "object" (the pixels were given: a mask),
-    /// "segmentation" (the segmentation network chose them; calibrated on cluttered scenes,
-    /// where a good fit may be another object), or "none" (rotations=1: not a probability).
+    /// Which calibration gave the confidence: "object" (a mask was given, or the segmentation
+    /// found one instance only), "segmentation" (the network chose among several instances;
+    /// calibrated on cluttered scenes, where a good fit may be another object), or "none"
+    /// (rotations=1: not a probability).
     #[getter]
     fn calibration(&self) -> &'static str {
         self.calibration

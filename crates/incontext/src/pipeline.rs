@@ -630,8 +630,9 @@ pub struct Registration {
     pub one_shot_normalised: Pose,
     /// In [0, 1]. Verified registrations: the probability that the pose is right (ADD-S below
     /// 0.1 of the diameter), the calibration ([`verified_calibration`]) of the [`evidence`];
-    /// when the segmentation network chose the pixels, the clutter calibration
-    /// ([`clutter_calibration`]) of the [`segmentation_evidence`] ([`Registration::calibration`]).
+    /// when the segmentation network chose the pixels among several instances, the clutter
+    /// calibration ([`clutter_calibration`]) of the [`segmentation_evidence`]
+    /// ([`Registration::calibration`]).
     /// Unverified: the fraction of the observed object voxels within [`MATCH_DISTANCE`]
     /// (normalised) of the model at the final pose.
     pub confidence: f64,
@@ -677,11 +678,11 @@ pub struct Registration {
 pub enum CalibrationUsed {
     /// Not verified: the point-distance confidence, not a probability.
     None,
-    /// The pixels were given (a mask, points): [`verified_calibration`] of the [`evidence`],
-    /// fitted on single objects.
+    /// The pixels were given (a mask, points), or the segmentation network found one instance
+    /// only: [`verified_calibration`] of the [`evidence`], fitted on single objects.
     Object,
-    /// The segmentation network chose the pixels: [`clutter_calibration`] of the
-    /// [`segmentation_evidence`], fitted on clutter scenes.
+    /// The segmentation network chose the pixels among several instances:
+    /// [`clutter_calibration`] of the [`segmentation_evidence`], fitted on clutter scenes.
     Segmentation,
 }
 
@@ -1269,9 +1270,13 @@ impl Pipeline {
                 clock,
             ) {
                 Ok(mut r) => {
-                    // The network chose the pixels: the confidence of a verified pose is the
-                    // clutter calibration's (it may be another object).
-                    if let (Some(e), Some(v)) = (r.evidence, r.verification) {
+                    // The network chose the pixels among several instances: the confidence
+                    // of a verified pose is the clutter calibration's (it may be another
+                    // object). A lone instance keeps the single-object calibration: the
+                    // clutter one was fitted on scenes with several (`docs/decisions.md`).
+                    if let (Some(e), Some(v), true) =
+                        (r.evidence, r.verification, all_candidates.len() > 1)
+                    {
                         r.confidence =
                             clutter_calibration().apply(segmentation_evidence(e, v.agreement));
                         r.verdict = Verdict::of_verified(v.score, r.confidence, &self.options);
