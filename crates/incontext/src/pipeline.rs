@@ -162,15 +162,24 @@ pub const VERIFIED_FOUND: f64 = 0.05;
 pub fn verified_calibration() -> &'static ic_eval::Calibration {
     static CALIBRATION: std::sync::OnceLock<ic_eval::Calibration> = std::sync::OnceLock::new();
     CALIBRATION.get_or_init(|| {
-        #[derive(serde::Deserialize)]
-        struct File {
-            knots: Vec<(f64, f64)>,
-        }
-        let text = include_str!("../../../models/verify-calibration.json");
-        let file: File = serde_json::from_str(text).expect("models/verify-calibration.json parses");
-        ic_eval::Calibration::new(file.knots)
-            .expect("models/verify-calibration.json is a calibration")
+        embedded_calibration(
+            "models/verify-calibration.json",
+            include_str!("../../../models/verify-calibration.json"),
+        )
     })
+}
+
+/// The calibration in `text`, the embedded JSON file `name` (`{"knots": [[x, p], …], …}`);
+/// it is part of the binary, so a bad one is a build defect, not an input error.
+fn embedded_calibration(name: &str, text: &str) -> ic_eval::Calibration {
+    #[derive(serde::Deserialize)]
+    struct File {
+        knots: Vec<(f64, f64)>,
+    }
+    let file: File =
+        serde_json::from_str(text).unwrap_or_else(|e| panic!("{name} does not parse: {e}"));
+    ic_eval::Calibration::new(file.knots)
+        .unwrap_or_else(|e| panic!("{name} is not a calibration: {e}"))
 }
 
 /// The isotonic calibration of a verified pose's [`segmentation_evidence`] when the
@@ -183,15 +192,10 @@ pub fn verified_calibration() -> &'static ic_eval::Calibration {
 pub fn clutter_calibration() -> &'static ic_eval::Calibration {
     static CALIBRATION: std::sync::OnceLock<ic_eval::Calibration> = std::sync::OnceLock::new();
     CALIBRATION.get_or_init(|| {
-        #[derive(serde::Deserialize)]
-        struct File {
-            knots: Vec<(f64, f64)>,
-        }
-        let text = include_str!("../../../models/verify-calibration-clutter.json");
-        let file: File =
-            serde_json::from_str(text).expect("models/verify-calibration-clutter.json parses");
-        ic_eval::Calibration::new(file.knots)
-            .expect("models/verify-calibration-clutter.json is a calibration")
+        embedded_calibration(
+            "models/verify-calibration-clutter.json",
+            include_str!("../../../models/verify-calibration-clutter.json"),
+        )
     })
 }
 
