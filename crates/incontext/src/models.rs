@@ -61,11 +61,13 @@ pub const POSE_OT: Shipped = Shipped {
     bytes: None,
 };
 
-/// The segmentation network (`models/seg-cpu.safetensors`).
+/// The segmentation network (`models/seg-clutter.safetensors`: instances of every object in
+/// cluttered scenes, two outputs; the earlier one-object network `models/seg-cpu.safetensors`
+/// stays loadable with `--seg-model`).
 pub const SEG: Shipped = Shipped {
-    file: "seg-cpu.safetensors",
+    file: "seg-clutter.safetensors",
     #[cfg(ic_embed_seg)]
-    bytes: Some(include_bytes!("../../../models/seg-cpu.safetensors")),
+    bytes: Some(include_bytes!("../../../models/seg-clutter.safetensors")),
     #[cfg(not(ic_embed_seg))]
     bytes: None,
 };

@@ -7,7 +7,9 @@
 //! default training starts from the shipped weights (`--from` picks another checkpoint,
 //! `--scratch` a fresh network) and, for the pose network, samples views like deployment
 //! (whole sphere, roll, truncation, occluders, sensor model; `--protocol paper` for the
-//! paper's). It stops after `--iterations`, after `--minutes` (a clean stop: checkpoint and
+//! paper's), and for the segmentation network cluttered tables, bins and shelves of the meshes
+//! with a fifth of lone objects in a room (a one-output checkpoint given with `--from`: room
+//! scenes only). It stops after `--iterations`, after `--minutes` (a clean stop: checkpoint and
 //! weights saved), or on Ctrl-C / SIGTERM (checkpoint saved, exit code 130).
 //!
 //! `--out` holds `final.safetensors` (the weights to use: `incontext register --pose-model
@@ -43,7 +45,7 @@ Example:
   incontext train pose --objects my-meshes --out my-pose --minutes 30
   incontext register --pose-model my-pose/final.safetensors --model my-meshes/part.ply ...")]
     Pose(PoseTrainArgs),
-    /// The segmentation network (depth map → object mask).
+    /// The segmentation network (depth map → every object's instances).
     #[command(after_help = "\
 Example:
   incontext train seg --objects my-meshes --out my-seg --minutes 30
@@ -64,7 +66,8 @@ pub struct CommonArgs {
     /// Start from this checkpoint's weights and configuration (default: the shipped network).
     #[arg(long, conflicts_with = "scratch")]
     pub from: Option<PathBuf>,
-    /// Start from a fresh network of the `cpu` preset instead of trained weights.
+    /// Start from a fresh network instead of trained weights (the pose network's `cpu` preset;
+    /// the segmentation network's `clutter` preset, two outputs).
     #[arg(long)]
     pub scratch: bool,
     /// Continue the run saved in OUT/latest.safetensors.
@@ -200,7 +203,7 @@ impl Start {
 
     fn describe(&self) -> String {
         match self {
-            Start::Scratch => "a fresh network (cpu preset)".into(),
+            Start::Scratch => "a fresh network".into(),
             Start::File(p) => p.display().to_string(),
             Start::Shipped(_, d) => d.clone(),
         }
@@ -398,18 +401,32 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
     let corpus = user_corpus(&c.objects)?;
     prepare_out(c)?;
     let start = start_from(c, crate::models::SEG, "segmentation network")?;
-    if let Some(p) = start.path() {
-        ic_seg::checkpoint::read_config(p).map_err(|e| {
-            CliError::input(format!(
-                "{}: not a segmentation checkpoint: {e}",
-                start.describe()
-            ))
-        })?;
-    }
+    // A two-output network (the shipped one: every object and its instance core) trains on
+    // cluttered scenes of the user's meshes with a fifth of lone objects in a room, as it was
+    // trained; a one-output network (`--from` an older checkpoint) on room scenes.
+    let outputs = match start.path() {
+        Some(p) => {
+            ic_seg::checkpoint::read_config(p)
+                .map_err(|e| {
+                    CliError::input(format!(
+                        "{}: not a segmentation checkpoint: {e}",
+                        start.describe()
+                    ))
+                })?
+                .net
+                .outputs
+        }
+        None => 2,
+    };
+    let (preset, scenes, room_fraction) = if outputs == 2 {
+        ("clutter", "clutter", 0.2)
+    } else {
+        ("cpu", "room", 0.0)
+    };
     let args = ic_train::seg::TrainArgs {
-        preset: "cpu".into(),
-        scenes: "room".into(),
-        room_fraction: 0.0,
+        preset: preset.into(),
+        scenes: scenes.into(),
+        room_fraction,
         init: None,
         objects: c.objects.clone(),
         out: c.out.clone(),

@@ -134,6 +134,12 @@ pub struct Score {
     /// Fraction of the model's rendered pixels in front of the observed surface (free-space
     /// violations).
     pub violation: f64,
+    /// Fraction of the model's rendered pixels (where the sensor returned) that agree, among
+    /// those not hidden: a rendered pixel lying behind the observed surface of its pixel and of
+    /// all its neighbours (by more than the tolerance) is consistent with a nearer object
+    /// occluding it, and left out. In clutter a right pose is often partly hidden by its
+    /// neighbours; [`Score::agreement`] counts those pixels against it, this does not.
+    pub visible_agreement: f64,
 }
 
 impl Observation {
@@ -275,33 +281,33 @@ impl Observation {
                 let mut camera = Camera::new(self.intrinsics, *pose);
                 camera.near = 1e-3;
                 match CpuRenderer::new().render(&scene, &camera) {
-                    Ok(r) => {
-                        let (coverage, agreement, violation) = self.compare(&r.depth, 0.0);
-                        Score::new(coverage, agreement, violation)
-                    }
+                    Ok(r) => Score::new(self.compare(&r.depth, 0.0)),
                     Err(_) => Score::default(),
                 }
             }
             ModelShape::Points { points, radius } => {
                 // Splatted squares stand off a slanted surface by up to their radius.
                 let rendered = splat(points, pose, &self.intrinsics, *radius);
-                let (coverage, agreement, _) = self.compare(&rendered, *radius);
-                let violation = self.point_violations(points, pose);
-                Score::new(coverage, agreement, violation)
+                let compared = self.compare(&rendered, *radius);
+                Score::new(Compared {
+                    violation: self.point_violations(points, pose),
+                    ..compared
+                })
             }
         }
     }
 
-    /// (coverage, agreement, violation) of a rendered depth against the observed one.
+    /// A rendered depth against the observed one: the fractions [`Score`] reports.
     ///
     /// A rendered pixel agrees when the observed depth of its own pixel or of one of its 8
     /// neighbours lies within the tolerance, and violates free space when it lies in front of
     /// all of them: a pose a fraction of a pixel off (what ICP leaves) must not lose the
     /// steep parts of the surface, where depth changes fast from pixel to pixel.
-    fn compare(&self, rendered: &DepthImage, slack: f32) -> (f64, f64, f64) {
+    fn compare(&self, rendered: &DepthImage, slack: f32) -> Compared {
         let (w, h) = (self.depth.width as usize, self.depth.height as usize);
         let radius = NEIGHBOURHOOD;
         let (mut with_return, mut agree, mut violate, mut covered) = (0usize, 0usize, 0usize, 0);
+        let mut hidden = 0usize;
         for v in 0..h {
             for u in 0..w {
                 let i = v * w + u;
@@ -312,6 +318,7 @@ impl Observation {
                 with_return += 1;
                 let tol = depth_tolerance(o, self.roughness) + slack;
                 let (mut near, mut behind_all) = ((r - o).abs() <= tol, r < o - tol);
+                let mut hidden_all = r > o + tol;
                 if !near && radius > 0 {
                     for vv in v.saturating_sub(radius)..=(v + radius).min(h - 1) {
                         for uu in u.saturating_sub(radius)..=(u + radius).min(w - 1) {
@@ -322,6 +329,7 @@ impl Observation {
                             let tol = depth_tolerance(on, self.roughness) + slack;
                             near |= (r - on).abs() <= tol;
                             behind_all &= r < on - tol;
+                            hidden_all &= r > on + tol;
                         }
                     }
                 }
@@ -330,17 +338,25 @@ impl Observation {
                     covered += self.mask.data[i] as usize;
                 } else if behind_all {
                     violate += 1;
+                } else if hidden_all {
+                    hidden += 1;
                 }
             }
         }
         if with_return == 0 || self.mask_pixels == 0 {
-            return (0.0, 0.0, 0.0);
+            return Compared::default();
         }
-        (
-            covered as f64 / self.mask_pixels as f64,
-            agree as f64 / with_return as f64,
-            violate as f64 / with_return as f64,
-        )
+        let unhidden = with_return - hidden;
+        Compared {
+            coverage: covered as f64 / self.mask_pixels as f64,
+            agreement: agree as f64 / with_return as f64,
+            violation: violate as f64 / with_return as f64,
+            visible_agreement: if unhidden > 0 {
+                agree as f64 / unhidden as f64
+            } else {
+                0.0
+            },
+        }
     }
 
     /// Fraction of the points (at `pose`) landing on a pixel with a return that lie in front of
@@ -374,15 +390,25 @@ impl Observation {
     }
 }
 
+/// The fractions of one comparison of a rendered depth with the observed one (see [`Score`]).
+#[derive(Clone, Copy, Debug, Default)]
+struct Compared {
+    coverage: f64,
+    agreement: f64,
+    violation: f64,
+    visible_agreement: f64,
+}
+
 impl Score {
     /// `coverage × (1 − 3·violation)`, clamped to [0, 1]: a pose must explain the object's
     /// pixels and must not put the model where the sensor saw through.
-    fn new(coverage: f64, agreement: f64, violation: f64) -> Score {
+    fn new(c: Compared) -> Score {
         Score {
-            score: (coverage * (1.0 - 3.0 * violation)).clamp(0.0, 1.0),
-            coverage,
-            agreement,
-            violation,
+            score: (c.coverage * (1.0 - 3.0 * c.violation)).clamp(0.0, 1.0),
+            coverage: c.coverage,
+            agreement: c.agreement,
+            violation: c.violation,
+            visible_agreement: c.visible_agreement,
         }
     }
 }
@@ -509,5 +535,34 @@ mod tests {
             DVec3::ZERO,
         ));
         assert!(obs.score(&shape, &tipped).score < base.score - 0.2);
+    }
+
+    #[test]
+    fn pixels_hidden_by_a_nearer_surface_do_not_count_against_visible_agreement() {
+        let (mut depth, mask, k, mesh, truth) = scene(4);
+        // A nearer surface (0.5 units in front of the object) hides the left half of the view.
+        let w = depth.width as usize;
+        let z_near = depth
+            .data
+            .iter()
+            .copied()
+            .filter(|&z| z > 0.0)
+            .fold(f32::MAX, f32::min)
+            - 0.5;
+        let mut kept = mask.clone();
+        for (i, z) in depth.data.iter_mut().enumerate() {
+            if i % w < w / 2 {
+                *z = z_near;
+                kept.data[i] = false;
+            }
+        }
+        let obs = Observation::from_depth(&depth, &k, &kept).unwrap();
+        let s = obs.score(&ModelShape::Mesh(mesh), &truth);
+        assert!(
+            s.agreement < 0.8,
+            "hidden pixels lower the plain agreement: {s:?}"
+        );
+        assert!(s.visible_agreement > 0.95, "{s:?}");
+        assert!(s.violation < 0.01, "{s:?}");
     }
 }
