@@ -562,15 +562,34 @@ pub struct InstanceCandidate {
     pub mask: Mask,
 }
 
+/// Instances whose size ratio lies within this factor of [`TYPICAL_SIZE_RATIO`] fit equally
+/// well: among them the ranking prefers the most pixels (the nearest, least hidden instance).
+pub const CLOSE_SIZE_FACTOR: f64 = 1.25;
+
 impl InstanceCandidate {
-    /// Ranking key: plausible first, then the size ratio nearest [`TYPICAL_SIZE_RATIO`] (in
-    /// log scale), then the segmentation score.
-    fn rank_key(&self) -> (bool, f64, f32) {
+    /// Ranking key: plausible first; then those within [`CLOSE_SIZE_FACTOR`] of
+    /// [`TYPICAL_SIZE_RATIO`], by pixels; then the rest by the size ratio nearest it (in log
+    /// scale); then the segmentation score.
+    fn rank_key(&self) -> (bool, bool, f64, f32) {
+        let off = (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs();
+        let close = off <= CLOSE_SIZE_FACTOR.ln();
         (
             self.plausible,
-            -(self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs(),
+            close,
+            if close { self.pixels as f64 } else { -off },
             self.score,
         )
+    }
+
+    /// Sorts `candidates` best first by [`InstanceCandidate::rank_key`].
+    pub fn rank(candidates: &mut [InstanceCandidate]) {
+        candidates.sort_by(|a, b| {
+            let (ka, kb) = (a.rank_key(), b.rank_key());
+            kb.0.cmp(&ka.0)
+                .then(kb.1.cmp(&ka.1))
+                .then(kb.2.total_cmp(&ka.2))
+                .then(kb.3.total_cmp(&ka.3))
+        });
     }
 }
 
@@ -1200,12 +1219,7 @@ impl Pipeline {
                 best_score.map_or("none".into(), |s| format!("{s:.3}"))
             )));
         }
-        out.sort_by(|a, b| {
-            let (ka, kb) = (a.rank_key(), b.rank_key());
-            kb.0.cmp(&ka.0)
-                .then(kb.1.total_cmp(&ka.1))
-                .then(kb.2.total_cmp(&ka.2))
-        });
+        InstanceCandidate::rank(&mut out);
         Ok(out)
     }
 
@@ -1932,6 +1946,29 @@ fn check_units(voxels: &[Vec3]) {
 mod tests {
     use super::*;
     use ic_geometry::glam::DVec3;
+
+    #[test]
+    fn among_instances_of_a_fitting_size_the_least_hidden_is_tried_first() {
+        let c = |size_ratio: f64, pixels: usize, score: f32| InstanceCandidate {
+            score,
+            pixels,
+            extent: size_ratio,
+            size_ratio,
+            plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
+            mask: Mask::filled(1, 1, false),
+        };
+        let mut v = vec![
+            c(0.8, 900, 0.9),  // the typical size, partly hidden
+            c(0.7, 2500, 0.6), // fits as well, most pixels: first
+            c(0.9, 1600, 0.7),
+            c(0.45, 5000, 0.99), // fits badly (half the typical extent): after the close ones
+            c(0.3, 9000, 0.99),  // worse still
+            c(2.0, 20000, 1.0),  // implausible (too large): last
+        ];
+        InstanceCandidate::rank(&mut v);
+        let order: Vec<usize> = v.iter().map(|c| c.pixels).collect();
+        assert_eq!(order, [2500, 1600, 900, 5000, 9000, 20000]);
+    }
 
     #[test]
     fn clutter_confidence_doubts_moderate_fits_that_a_given_mask_would_trust() {
