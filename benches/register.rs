@@ -176,12 +176,13 @@ fn clutter_scene(seed: u64, objects: usize) -> (DepthImage, Intrinsics, Object) 
     (depth, s.intrinsics, object)
 }
 
-/// `register` on tables, bins and shelves of 15 objects with the shipped segmentation
+/// `register` on tables, bins and shelves of 15 objects with the clutter segmentation
 /// network (two outputs: objects and instance cores), which finds every object so that the
 /// target is chosen among them (up to [`PipelineOptions::instance_tries`] registrations).
 fn register_clutter(c: &mut Criterion) {
     let scenes: Vec<_> = (1..=3).map(|s| clutter_scene(s, 15)).collect();
-    let pipeline = Pipeline::builder().build().unwrap();
+    let seg = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(CLUTTER_SEG);
+    let pipeline = Pipeline::builder().seg_model(&seg).build().unwrap();
     let mut group = c.benchmark_group("register_640x480");
     group.sample_size(10);
     bench_scenes(&mut group, "clutter15_verified_k24", &pipeline, &scenes);
@@ -199,6 +200,9 @@ fn register_clutter(c: &mut Criterion) {
         }
     }
 }
+
+/// The clutter segmentation network (relative to this crate).
+const CLUTTER_SEG: &str = "../../models/seg-clutter.safetensors";
 
 criterion_group!(benches, baseline, register, register_clutter);
 criterion_main!(benches);

@@ -40,9 +40,9 @@ fn segment(c: &mut Criterion) {
     group.sample_size(20);
     // The shipped model (random weights would threshold the whole image into one component and
     // time the post-processing of 300 000 pixels instead).
-    let shipped = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../models/seg-clutter.safetensors");
-    let seg = ic_seg::Segmenter::load(&shipped).expect("models/seg-clutter.safetensors");
+    let shipped =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/seg-cpu.safetensors");
+    let seg = ic_seg::Segmenter::load(&shipped).expect("models/seg-cpu.safetensors");
     let (depth, _) = scene(640, 480);
     let k = Intrinsics::new(525.0, 525.0, 319.5, 239.5, 640, 480).expect("camera");
     group.bench_function("network_640x480", |b| {

@@ -11,7 +11,7 @@ use std::path::Path;
 const MODELS: [(&str, &str); 3] = [
     ("pose-cpu-softmax.safetensors", "ic_embed_pose_softmax"),
     ("pose-cpu-ot.safetensors", "ic_embed_pose_ot"),
-    ("seg-clutter.safetensors", "ic_embed_seg"),
+    ("seg-cpu.safetensors", "ic_embed_seg"),
 ];
 
 fn main() {

@@ -61,13 +61,12 @@ pub const POSE_OT: Shipped = Shipped {
     bytes: None,
 };
 
-/// The segmentation network (`models/seg-clutter.safetensors`: instances of every object in
-/// cluttered scenes, two outputs; the earlier one-object network `models/seg-cpu.safetensors`
-/// stays loadable with `--seg-model`).
+/// The segmentation network (`models/seg-cpu.safetensors`, one object per scene; the clutter
+/// network `models/seg-clutter.safetensors` is loaded with `--seg-model`).
 pub const SEG: Shipped = Shipped {
-    file: "seg-clutter.safetensors",
+    file: "seg-cpu.safetensors",
     #[cfg(ic_embed_seg)]
-    bytes: Some(include_bytes!("../../../models/seg-clutter.safetensors")),
+    bytes: Some(include_bytes!("../../../models/seg-cpu.safetensors")),
     #[cfg(not(ic_embed_seg))]
     bytes: None,
 };

@@ -43,7 +43,7 @@ pub fn pose_model(head: &str) -> PathBuf {
     PathBuf::from(format!("models/pose-cpu-{head}.safetensors"))
 }
 
-pub const SEG_MODEL: &str = "models/seg-clutter.safetensors";
+pub const SEG_MODEL: &str = "models/seg-cpu.safetensors";
 
 /// How one method on one set ended up.
 #[derive(Clone, Debug, serde::Serialize)]
