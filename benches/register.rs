@@ -180,8 +180,8 @@ fn clutter_scene(seed: u64, objects: usize) -> (DepthImage, Intrinsics, Object) 
 /// network (two outputs: objects and instance cores), which finds every object so that the
 /// target is chosen among them (up to [`PipelineOptions::instance_tries`] registrations).
 fn register_clutter(c: &mut Criterion) {
-    let scenes: Vec<_> = (1..=3).map(|s| clutter_scene(s, 15)).collect();
     let seg = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(CLUTTER_SEG);
+    let scenes: Vec<_> = (1..=3).map(|s| clutter_scene(s, 15)).collect();
     let pipeline = Pipeline::builder().seg_model(&seg).build().unwrap();
     let mut group = c.benchmark_group("register_640x480");
     group.sample_size(10);
