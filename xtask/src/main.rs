@@ -40,7 +40,8 @@
 //!   calibration of poses on network-segmented instances from `incontext eval --dataset …
 //!   --candidates N` lines on clutter scenes (`models/verify-calibration-clutter.json`).
 //! - `cargo xtask seg-post --model FILE --out FILE [--pixel-threshold …]` rewrites a
-//!   segmentation checkpoint's post-processing settings (chosen on validation scenes).
+//!   segmentation checkpoint's post-processing settings and inference input size (chosen on
+//!   validation scenes).
 
 mod bench;
 mod clutter;

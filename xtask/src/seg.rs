@@ -49,6 +49,13 @@ pub struct PostArgs {
     /// instance.
     #[arg(long)]
     core_threshold: Option<f32>,
+    /// The network's input size at inference (the network is fully convolutional; each
+    /// divisible by 2^(levels − 1)): a finer input than the training renders' keeps small,
+    /// far objects.
+    #[arg(long)]
+    input_width: Option<u32>,
+    #[arg(long)]
+    input_height: Option<u32>,
 }
 
 /// `cargo xtask seg-post`: writes the weights of `--model` with new post-processing settings
@@ -74,6 +81,12 @@ pub fn set_post(args: PostArgs) -> Result<()> {
     }
     if let Some(v) = args.core_threshold {
         p.core_threshold = v;
+    }
+    if let Some(v) = args.input_width {
+        cfg.net.input_width = v;
+    }
+    if let Some(v) = args.input_height {
+        cfg.net.input_height = v;
     }
     cfg.validate()?;
     // Only the network's tensors: a training checkpoint's Adam moments are left behind.

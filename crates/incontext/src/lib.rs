@@ -89,6 +89,7 @@ pub mod inputs;
 pub mod models;
 pub mod outputs;
 pub mod overlay;
+pub mod parts;
 pub mod pipeline;
 pub mod register;
 pub mod render;

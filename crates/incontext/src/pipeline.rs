@@ -102,6 +102,9 @@ impl From<ic_pose::PoseError> for PipelineError {
                 PipelineError::not_found(format!("too few points to estimate a pose: {e}"))
             }
             P::NonFinite { .. } => PipelineError::input(e.to_string()),
+            P::Geometry(g @ ic_geometry::GeometryError::DegenerateCorrespondences { .. }) => {
+                PipelineError::from(g.clone())
+            }
             _ => PipelineError::internal(e.to_string()),
         }
     }
@@ -124,7 +127,15 @@ impl From<ic_seg::SegError> for PipelineError {
 /// Geometry errors inside the pipeline come from computations on checked input.
 impl From<ic_geometry::GeometryError> for PipelineError {
     fn from(e: ic_geometry::GeometryError) -> Self {
-        PipelineError::internal(e.to_string())
+        match e {
+            // Object points on a line (a one-pixel sliver of a mask): they fix no pose.
+            ic_geometry::GeometryError::DegenerateCorrespondences { .. } => {
+                PipelineError::not_found(format!(
+                    "object not found: no pose can be estimated from the object points ({e})"
+                ))
+            }
+            e => PipelineError::internal(e.to_string()),
+        }
     }
 }
 
@@ -558,24 +569,47 @@ pub struct InstanceCandidate {
     pub size_ratio: f64,
     /// Whether the size ratio lies in [[`MIN_SIZE_RATIO`], [`MAX_SIZE_RATIO`]].
     pub plausible: bool,
+    /// How many of the network's instances it joins: 1, or more for touching instances each
+    /// too small to be the object that together fit its size ([`crate::parts`]).
+    pub parts: usize,
     #[serde(skip)]
     pub mask: Mask,
 }
+
+/// The visible extent of back-projected points (their units): twice the 90th percentile of
+/// their distances to their centroid. At least one point.
+fn visible_extent(points: &[Vec3]) -> f64 {
+    let centre = points.iter().copied().sum::<Vec3>() / points.len() as f32;
+    let mut d: Vec<f32> = points.iter().map(|p| p.distance(centre)).collect();
+    let k = ((d.len() as f64 * 0.9) as usize).min(d.len() - 1);
+    let (_, p90, _) = d.select_nth_unstable_by(k, f32::total_cmp);
+    2.0 * *p90 as f64
+}
+
+/// Touching instances are joined as parts of one object when their depths differ by at most
+/// this fraction of the model's diameter where they meet ([`crate::parts::contacts`]).
+pub const PART_DEPTH_GAP: f64 = 0.5;
 
 /// Instances whose size ratio lies within this factor of [`TYPICAL_SIZE_RATIO`] fit equally
 /// well: among them the ranking prefers the most pixels (the nearest, least hidden instance).
 pub const CLOSE_SIZE_FACTOR: f64 = 1.25;
 
 impl InstanceCandidate {
+    /// Whether the size ratio lies within [`CLOSE_SIZE_FACTOR`] of [`TYPICAL_SIZE_RATIO`].
+    pub fn close_size(&self) -> bool {
+        (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs() <= CLOSE_SIZE_FACTOR.ln()
+    }
+
     /// Ranking key: plausible first; then those within [`CLOSE_SIZE_FACTOR`] of
-    /// [`TYPICAL_SIZE_RATIO`], by pixels; then the rest by the size ratio nearest it (in log
-    /// scale); then the segmentation score.
-    fn rank_key(&self) -> (bool, bool, f64, f32) {
+    /// [`TYPICAL_SIZE_RATIO`], the network's own instances before joined parts, by pixels;
+    /// then the rest by the size ratio nearest it (in log scale); then the segmentation score.
+    fn rank_key(&self) -> (bool, bool, bool, f64, f32) {
         let off = (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs();
-        let close = off <= CLOSE_SIZE_FACTOR.ln();
+        let close = self.close_size();
         (
             self.plausible,
             close,
+            self.parts == 1,
             if close { self.pixels as f64 } else { -off },
             self.score,
         )
@@ -587,8 +621,9 @@ impl InstanceCandidate {
             let (ka, kb) = (a.rank_key(), b.rank_key());
             kb.0.cmp(&ka.0)
                 .then(kb.1.cmp(&ka.1))
-                .then(kb.2.total_cmp(&ka.2))
+                .then(kb.2.cmp(&ka.2))
                 .then(kb.3.total_cmp(&ka.3))
+                .then(kb.4.total_cmp(&ka.4))
         });
     }
 }
@@ -729,6 +764,8 @@ pub struct InstanceChoice {
     pub candidates: usize,
     /// Its visible extent over the model's diameter.
     pub size_ratio: f64,
+    /// How many of the network's instances it joins ([`InstanceCandidate::parts`]).
+    pub parts: usize,
 }
 
 /// One verified hypothesis of [`Registration::verified`].
@@ -1190,27 +1227,71 @@ impl Pipeline {
         let post = &seg.segmenter.config().post;
         let found = seg.segmenter.instances(depth_n, intrinsics)?;
         let best_score = found.first().map(|i| i.score);
+        let diameter = object.diameter.max(1e-9);
         let mut out = Vec::new();
+        let mut clouds: Vec<Vec<Vec3>> = Vec::new();
         for inst in found.into_iter().filter(|i| i.score > post.score_threshold) {
             let mask = post.refine(inst.mask, depth_n);
             let points = intrinsics.back_project_depth(depth_n, Some(&mask))?;
             if points.len() < 3 {
                 continue;
             }
-            let centre = points.iter().copied().sum::<Vec3>() / points.len() as f32;
-            let mut d: Vec<f32> = points.iter().map(|p| p.distance(centre)).collect();
-            let k = ((d.len() as f64 * 0.9) as usize).min(d.len() - 1);
-            let (_, p90, _) = d.select_nth_unstable_by(k, f32::total_cmp);
-            let extent = 2.0 * *p90 as f64;
-            let size_ratio = extent / object.diameter.max(1e-9);
+            let extent = visible_extent(&points);
+            let size_ratio = extent / diameter;
             out.push(InstanceCandidate {
                 score: inst.score,
                 pixels: mask.data.iter().filter(|&&b| b).count(),
                 extent,
                 size_ratio,
                 plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
+                parts: 1,
                 mask,
             });
+            clouds.push(points);
+        }
+        // Touching instances each too small to be the object that together fit its size: a
+        // lone object the network cut into parts.
+        if out.len() > 1 {
+            let masks: Vec<&Mask> = out.iter().map(|c| &c.mask).collect();
+            let touching =
+                crate::parts::contacts(&masks, depth_n, (PART_DEPTH_GAP * diameter) as f32);
+            let ratios: Vec<f64> = out.iter().map(|c| c.size_ratio).collect();
+            let groups = crate::parts::merged_groups(
+                &ratios,
+                &touching,
+                TYPICAL_SIZE_RATIO / CLOSE_SIZE_FACTOR,
+                TYPICAL_SIZE_RATIO * CLOSE_SIZE_FACTOR,
+                |g| {
+                    let union: Vec<Vec3> =
+                        g.iter().flat_map(|&i| clouds[i].iter().copied()).collect();
+                    visible_extent(&union) / diameter
+                },
+            );
+            for g in groups {
+                let mut mask = out[g[0]].mask.clone();
+                for &i in &g[1..] {
+                    for (m, &o) in mask.data.iter_mut().zip(&out[i].mask.data) {
+                        *m |= o;
+                    }
+                }
+                let union: Vec<Vec3> = g.iter().flat_map(|&i| clouds[i].iter().copied()).collect();
+                let extent = visible_extent(&union);
+                let pixels: usize = g.iter().map(|&i| out[i].pixels).sum();
+                let score = g
+                    .iter()
+                    .map(|&i| out[i].score * out[i].pixels as f32)
+                    .sum::<f32>()
+                    / pixels.max(1) as f32;
+                out.push(InstanceCandidate {
+                    score,
+                    pixels: mask.data.iter().filter(|&&b| b).count(),
+                    extent,
+                    size_ratio: extent / diameter,
+                    plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&(extent / diameter)),
+                    parts: g.len(),
+                    mask,
+                });
+            }
         }
         if out.is_empty() {
             return Err(PipelineError::not_found(format!(
@@ -1237,6 +1318,7 @@ impl Pipeline {
         let t = Instant::now();
         let all_candidates = self.instance_candidates(object, depth_n, intrinsics)?;
         let seg_seconds = t.elapsed().as_secs_f64();
+        let network_instances = all_candidates.iter().filter(|c| c.parts == 1).count();
         let fitting = all_candidates.iter().filter(|c| c.plausible).count();
         let candidates: Vec<&InstanceCandidate> = if fitting > 0 {
             all_candidates.iter().filter(|c| c.plausible).collect()
@@ -1293,7 +1375,7 @@ impl Pipeline {
                     // object). A lone instance keeps the single-object calibration: the
                     // clutter one was fitted on scenes with several (`docs/decisions.md`).
                     if let (Some(e), Some(v), true) =
-                        (r.evidence, r.verification, all_candidates.len() > 1)
+                        (r.evidence, r.verification, network_instances > 1)
                     {
                         r.confidence =
                             clutter_calibration().apply(segmentation_evidence(e, v.agreement));
@@ -1302,8 +1384,9 @@ impl Pipeline {
                     }
                     r.instance = Some(InstanceChoice {
                         rank: i,
-                        candidates: all_candidates.len(),
+                        candidates: network_instances,
                         size_ratio: c.size_ratio,
+                        parts: c.parts,
                     });
                     let stop = search == InstanceSearch::FirstOk && r.verdict == Verdict::Ok;
                     done.push(r);
@@ -1955,6 +2038,7 @@ mod tests {
             extent: size_ratio,
             size_ratio,
             plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
+            parts: 1,
             mask: Mask::filled(1, 1, false),
         };
         let mut v = vec![
@@ -1968,6 +2052,28 @@ mod tests {
         InstanceCandidate::rank(&mut v);
         let order: Vec<usize> = v.iter().map(|c| c.pixels).collect();
         assert_eq!(order, [2500, 1600, 900, 5000, 9000, 20000]);
+
+        // Parts joined to the model's size come after the network's own instances of a
+        // fitting size, even with more pixels, and before those that fit badly.
+        let joined = InstanceCandidate {
+            parts: 3,
+            ..c(0.85, 12000, 0.8)
+        };
+        v.push(joined);
+        InstanceCandidate::rank(&mut v);
+        let order: Vec<(usize, usize)> = v.iter().map(|c| (c.pixels, c.parts)).collect();
+        assert_eq!(
+            order,
+            [
+                (2500, 1),
+                (1600, 1),
+                (900, 1),
+                (12000, 3),
+                (5000, 1),
+                (9000, 1),
+                (20000, 1)
+            ]
+        );
     }
 
     #[test]
@@ -2031,5 +2137,30 @@ mod tests {
         let d = object.add_s(&a, &moved);
         assert!(d <= object.diameter + 1e-4, "{d}");
         assert!(d > EQUIVALENT_ADD_S * object.diameter, "{d}");
+    }
+}
+
+#[cfg(test)]
+mod degenerate_tests {
+    use super::*;
+
+    #[test]
+    fn collinear_object_points_are_not_found_rather_than_an_internal_error() {
+        let pipeline = Pipeline::builder()
+            .segmentation(false)
+            .rotations(24)
+            .threads(1)
+            .build()
+            .unwrap();
+        let mesh = ic_geometry::shapes::random_object(3);
+        let object = Object::from_mesh(mesh, 0).unwrap();
+        // A sliver: 64 points on one line 2 units in front of the camera.
+        let line: Vec<Vec3> = (0..64)
+            .map(|i| Vec3::new(-0.5 + i as f32 / 64.0, 0.0, 2.0))
+            .collect();
+        match pipeline.register_points(&object, &line, 0) {
+            Ok(r) => assert_ne!(r.verdict, Verdict::Ok),
+            Err(e) => assert!(matches!(e, PipelineError::NotFound(_)), "{e:?}"),
+        }
     }
 }
