@@ -56,6 +56,10 @@ pub struct EvalArgs {
     /// --frames: a rendered pixel agrees with the depth map within this many millimetres.
     #[arg(long, default_value_t = 10.0)]
     pub tolerance_mm: f64,
+    /// --frames: as `register --all --min-confidence`: the `--all` search also returns
+    /// `uncertain` instances whose confidence reaches this, in [0, 1].
+    #[arg(long, value_parser = crate::register::parse_probability)]
+    pub min_confidence: Option<f64>,
     /// The BOP split folder (--dataset).
     #[arg(long, default_value = "test")]
     pub split: String,
@@ -1068,7 +1072,10 @@ fn run_frames(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Res
         args.pose_model.as_deref(),
         args.seg_model.as_deref(),
         true,
-        args.pipeline_options(),
+        PipelineOptions {
+            all_min_confidence: args.min_confidence,
+            ..args.pipeline_options()
+        },
     )?;
     let tol = args.tolerance_mm;
     let judge = |r: &Registration, depth: &ic_geometry::DepthImage| -> Result<Value> {

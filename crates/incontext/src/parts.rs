@@ -123,6 +123,62 @@ pub fn merged_groups(
     groups
 }
 
+/// Pieces of an instance too large to be the model (a heap of objects the network did not
+/// split), each a candidate for one object of the heap, nearest first. `pixels` are the
+/// instance's pixel indices and `points` their back-projected points (camera frame, the same
+/// units as `diameter`, the model's diameter), in the same order.
+///
+/// The nearest pixel not yet covered seeds a piece: the object it lies on is taken to be
+/// centred `0.3·diameter` behind it along its viewing ray, and the piece holds the instance's
+/// pixels within `0.5·diameter` of that centre; those within `0.35·diameter` seed no other.
+/// Pieces under `min_pixels`, or sharing more than half their pixels with pieces already
+/// cut, are dropped; at most `max_pieces` are returned, each as sorted
+/// indices into `pixels`.
+pub fn heap_pieces(
+    points: &[ic_geometry::glam::Vec3],
+    diameter: f32,
+    min_pixels: usize,
+    max_pieces: usize,
+) -> Vec<Vec<usize>> {
+    let mut order: Vec<usize> = (0..points.len()).collect();
+    order.sort_by(|&a, &b| points[a].z.total_cmp(&points[b].z).then(a.cmp(&b)));
+    let mut covered = vec![false; points.len()];
+    let mut taken = vec![false; points.len()];
+    let mut pieces: Vec<Vec<usize>> = Vec::new();
+    for &seed in &order {
+        if pieces.len() >= max_pieces {
+            break;
+        }
+        if covered[seed] {
+            continue;
+        }
+        let p = points[seed];
+        let centre = p + p.normalize_or_zero() * (0.3 * diameter);
+        let (r_piece, r_cover) = (0.5 * diameter, 0.35 * diameter);
+        let mut piece = Vec::new();
+        for (i, q) in points.iter().enumerate() {
+            let d = q.distance(centre);
+            if d <= r_piece {
+                piece.push(i);
+            }
+            if d <= r_cover {
+                covered[i] = true;
+            }
+        }
+        covered[seed] = true;
+        // Mostly of a piece already cut (the rim of an object whose front seeded one): not
+        // another object.
+        let shared = piece.iter().filter(|&&i| taken[i]).count();
+        if piece.len() >= min_pixels.max(1) && 2 * shared <= piece.len() {
+            for &i in &piece {
+                taken[i] = true;
+            }
+            pieces.push(piece);
+        }
+    }
+    pieces
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -166,6 +222,48 @@ mod tests {
         // Masks apart by more than the radius do not touch.
         let far = mask(w, h, |x, _| x > 11);
         assert!(contacts(&[&left, &far], &flat, 0.3).is_empty());
+    }
+
+    #[test]
+    fn a_heap_is_cut_into_pieces_one_per_object_nearest_first() {
+        use ic_geometry::glam::Vec3;
+        // Two balls of diameter 1 side by side, the right one 0.5 nearer the camera: the
+        // points of their camera-facing halves.
+        let mut points = Vec::new();
+        for (cx, cz) in [(-0.6f32, 3.0f32), (0.6, 2.5)] {
+            for i in 0..20 {
+                for j in 0..20 {
+                    let (a, b) = (
+                        std::f32::consts::PI * i as f32 / 19.0,
+                        std::f32::consts::PI * j as f32 / 19.0,
+                    );
+                    let n = Vec3::new(a.cos() * b.sin(), b.cos(), -a.sin() * b.sin());
+                    points.push(Vec3::new(cx, 0.0, cz) + 0.5 * n);
+                }
+            }
+        }
+        let pieces = heap_pieces(&points, 1.0, 10, 6);
+        assert!(pieces.len() >= 2, "{}", pieces.len());
+        // The first piece is the nearer ball (its front; the rim seen edge-on is left out),
+        // and almost nothing of the other.
+        let right = |i: &usize| points[*i].x > 0.0;
+        let first = &pieces[0];
+        let (r, l) = (
+            first.iter().filter(|i| right(i)).count(),
+            first.iter().filter(|i| !right(i)).count(),
+        );
+        assert!(
+            r >= 150 && l <= 20,
+            "{r} of the nearer ball, {l} of the other"
+        );
+        // Some later piece is mostly the other ball.
+        assert!(
+            pieces[1..]
+                .iter()
+                .any(|p| p.iter().filter(|i| !right(i)).count() >= 150)
+        );
+        // The cap holds.
+        assert_eq!(heap_pieces(&points, 1.0, 10, 1).len(), 1);
     }
 
     #[test]

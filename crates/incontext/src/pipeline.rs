@@ -569,6 +569,12 @@ pub struct InstanceCandidate {
     pub size_ratio: f64,
     /// Whether the size ratio lies in [[`MIN_SIZE_RATIO`], [`MAX_SIZE_RATIO`]].
     pub plausible: bool,
+    /// Whether its mask reaches the image's border (within [`BORDER_PX`]): the object may be
+    /// cut off, its extent and pose less sure.
+    pub truncated: bool,
+    /// Whether it is a piece cut from an instance too large to be the model (a heap the
+    /// network did not split; [`crate::parts::heap_pieces`]).
+    pub cut: bool,
     /// How many of the network's instances it joins: 1, or more for touching instances each
     /// too small to be the object that together fit its size ([`crate::parts`]).
     pub parts: usize,
@@ -586,6 +592,53 @@ fn visible_extent(points: &[Vec3]) -> f64 {
     2.0 * *p90 as f64
 }
 
+/// An instance with a pixel this close to the border of the sensor's frame is cut off by it
+/// ([`InstanceCandidate::truncated`]).
+pub const BORDER_PX: u32 = 2;
+
+/// The sensor's frame in `depth`: the first and last rows and columns of which at least a
+/// quarter of the pixels have a depth, as `(x0, y0, x1, y1)` inclusive (Kinect-type sensors
+/// leave bands of no return along the image's borders). The whole image when none qualifies.
+fn sensor_frame(depth: &DepthImage) -> (u32, u32, u32, u32) {
+    let (w, h) = (depth.width as usize, depth.height as usize);
+    let valid = |x: usize, y: usize| {
+        let z = depth.data[y * w + x];
+        z.is_finite() && z > 0.0
+    };
+    let rows: Vec<bool> = (0..h)
+        .map(|y| 4 * (0..w).filter(|&x| valid(x, y)).count() >= w)
+        .collect();
+    let cols: Vec<bool> = (0..w)
+        .map(|x| 4 * (0..h).filter(|&y| valid(x, y)).count() >= h)
+        .collect();
+    let span = |v: &[bool]| {
+        let first = v.iter().position(|&b| b);
+        let last = v.iter().rposition(|&b| b);
+        match (first, last) {
+            (Some(a), Some(b)) => (a as u32, b as u32),
+            _ => (0, v.len().saturating_sub(1) as u32),
+        }
+    };
+    let ((x0, x1), (y0, y1)) = (span(&cols), span(&rows));
+    (x0, y0, x1, y1)
+}
+
+/// Whether `mask` has a pixel within [`BORDER_PX`] of the sensor's `frame` (see
+/// [`sensor_frame`]) or outside it.
+fn touches_border(mask: &Mask, frame: (u32, u32, u32, u32)) -> bool {
+    let (x0, y0, x1, y1) = frame;
+    let w = mask.width;
+    mask.data.iter().enumerate().any(|(i, &on)| {
+        let (x, y) = (i as u32 % w, i as u32 / w);
+        on && (x < x0 + BORDER_PX || y < y0 + BORDER_PX || x + BORDER_PX > x1 || y + BORDER_PX > y1)
+    })
+}
+
+/// At most this many pieces are cut from one instance too large to be the model, and from
+/// all of them together ([`crate::parts::heap_pieces`]).
+pub const MAX_PIECES_PER_INSTANCE: usize = 6;
+pub const MAX_PIECES: usize = 12;
+
 /// Touching instances are joined as parts of one object when their depths differ by at most
 /// this fraction of the model's diameter where they meet ([`crate::parts::contacts`]).
 pub const PART_DEPTH_GAP: f64 = 0.5;
@@ -600,15 +653,19 @@ impl InstanceCandidate {
         (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs() <= CLOSE_SIZE_FACTOR.ln()
     }
 
-    /// Ranking key: plausible first; then those within [`CLOSE_SIZE_FACTOR`] of
-    /// [`TYPICAL_SIZE_RATIO`], the network's own instances before joined parts, by pixels;
-    /// then the rest by the size ratio nearest it (in log scale); then the segmentation score.
-    fn rank_key(&self) -> (bool, bool, bool, f64, f32) {
+    /// Ranking key: plausible first; the network's instances (and joined parts) before
+    /// pieces cut from heaps; then those within [`CLOSE_SIZE_FACTOR`] of
+    /// [`TYPICAL_SIZE_RATIO`]: whole in the image before cut off by its border, the network's
+    /// own instances before joined parts, by pixels; then the rest by the size ratio nearest
+    /// it (in log scale); then the segmentation score.
+    fn rank_key(&self) -> (bool, bool, bool, bool, bool, f64, f32) {
         let off = (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs();
         let close = self.close_size();
         (
             self.plausible,
+            !self.cut,
             close,
+            !(close && self.truncated),
             self.parts == 1,
             if close { self.pixels as f64 } else { -off },
             self.score,
@@ -622,8 +679,10 @@ impl InstanceCandidate {
             kb.0.cmp(&ka.0)
                 .then(kb.1.cmp(&ka.1))
                 .then(kb.2.cmp(&ka.2))
-                .then(kb.3.total_cmp(&ka.3))
-                .then(kb.4.total_cmp(&ka.4))
+                .then(kb.3.cmp(&ka.3))
+                .then(kb.4.cmp(&ka.4))
+                .then(kb.5.total_cmp(&ka.5))
+                .then(kb.6.total_cmp(&ka.6))
         });
     }
 }
@@ -766,6 +825,10 @@ pub struct InstanceChoice {
     pub size_ratio: f64,
     /// How many of the network's instances it joins ([`InstanceCandidate::parts`]).
     pub parts: usize,
+    /// Whether its mask reaches the image's border ([`InstanceCandidate::truncated`]).
+    pub truncated: bool,
+    /// Whether it is a piece cut from a heap ([`InstanceCandidate::cut`]).
+    pub cut: bool,
 }
 
 /// One verified hypothesis of [`Registration::verified`].
@@ -1228,6 +1291,7 @@ impl Pipeline {
         let found = seg.segmenter.instances(depth_n, intrinsics)?;
         let best_score = found.first().map(|i| i.score);
         let diameter = object.diameter.max(1e-9);
+        let frame = sensor_frame(depth_n);
         let mut out = Vec::new();
         let mut clouds: Vec<Vec<Vec3>> = Vec::new();
         for inst in found.into_iter().filter(|i| i.score > post.score_threshold) {
@@ -1244,6 +1308,8 @@ impl Pipeline {
                 extent,
                 size_ratio,
                 plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
+                truncated: touches_border(&mask, frame),
+                cut: false,
                 parts: 1,
                 mask,
             });
@@ -1288,9 +1354,55 @@ impl Pipeline {
                     extent,
                     size_ratio: extent / diameter,
                     plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&(extent / diameter)),
+                    truncated: touches_border(&mask, frame),
+                    cut: false,
                     parts: g.len(),
                     mask,
                 });
+            }
+        }
+        // Pieces of instances too large to be the object: heaps the network did not split.
+        let large: Vec<usize> = (0..out.len())
+            .filter(|&i| out[i].parts == 1 && out[i].size_ratio > MAX_SIZE_RATIO)
+            .collect();
+        let min_pixels = post.min_pixels_at(depth_n.width, depth_n.height);
+        let mut cut = 0;
+        for i in large {
+            if cut >= MAX_PIECES {
+                break;
+            }
+            let pixels: Vec<usize> = (0..depth_n.data.len())
+                .filter(|&k| {
+                    let z = depth_n.data[k];
+                    out[i].mask.data[k] && z.is_finite() && z > 0.0
+                })
+                .collect();
+            let pieces = crate::parts::heap_pieces(
+                &clouds[i],
+                diameter as f32,
+                min_pixels,
+                MAX_PIECES_PER_INSTANCE.min(MAX_PIECES - cut),
+            );
+            for piece in pieces {
+                let mut mask = Mask::filled(depth_n.width, depth_n.height, false);
+                for &k in &piece {
+                    mask.data[pixels[k]] = true;
+                }
+                let points: Vec<Vec3> = piece.iter().map(|&k| clouds[i][k]).collect();
+                let extent = visible_extent(&points);
+                let size_ratio = extent / diameter;
+                out.push(InstanceCandidate {
+                    score: out[i].score,
+                    pixels: piece.len(),
+                    extent,
+                    size_ratio,
+                    plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
+                    truncated: touches_border(&mask, frame),
+                    cut: true,
+                    parts: 1,
+                    mask,
+                });
+                cut += 1;
             }
         }
         if out.is_empty() {
@@ -1318,17 +1430,41 @@ impl Pipeline {
         let t = Instant::now();
         let all_candidates = self.instance_candidates(object, depth_n, intrinsics)?;
         let seg_seconds = t.elapsed().as_secs_f64();
-        let network_instances = all_candidates.iter().filter(|c| c.parts == 1).count();
-        let fitting = all_candidates.iter().filter(|c| c.plausible).count();
-        let candidates: Vec<&InstanceCandidate> = if fitting > 0 {
-            all_candidates.iter().filter(|c| c.plausible).collect()
-        } else {
+        let network_instances = all_candidates
+            .iter()
+            .filter(|c| c.parts == 1 && !c.cut)
+            .count();
+        // The network's instances (and joined parts) that fit; when none does, the largest
+        // one that is too large (its crop may still hold the object); then the pieces cut
+        // from heaps, tried only when those gave no `ok` pose.
+        let own: Vec<&InstanceCandidate> = all_candidates
+            .iter()
+            .filter(|c| c.plausible && !c.cut)
+            .collect();
+        let fallback: Vec<&InstanceCandidate> = if own.is_empty() {
             all_candidates
                 .iter()
-                .filter(|c| c.size_ratio > MAX_SIZE_RATIO)
+                .filter(|c| c.size_ratio > MAX_SIZE_RATIO && !c.cut)
                 .take(1)
                 .collect()
+        } else {
+            Vec::new()
         };
+        let pieces: Vec<&InstanceCandidate> = all_candidates
+            .iter()
+            .filter(|c| c.plausible && c.cut)
+            .collect();
+        let per_group = match search {
+            InstanceSearch::FirstOk => self.options.instance_tries.max(1),
+            _ => usize::MAX,
+        };
+        let candidates: Vec<&InstanceCandidate> = own
+            .iter()
+            .chain(&fallback)
+            .take(per_group)
+            .chain(pieces.iter().take(per_group))
+            .copied()
+            .collect();
         if candidates.is_empty() {
             let largest = all_candidates
                 .iter()
@@ -1338,13 +1474,13 @@ impl Pipeline {
                 "object not found: the segmentation found {} instance(s), all too small for the model \
                  (the largest spans {:.2} of its diameter, at least {MIN_SIZE_RATIO} is needed); \
                  is the mesh in the depth map's units (--model-unit-mm)?",
-                all_candidates.len(),
-                largest
+                network_instances, largest
             )));
         }
         let tries = match search {
-            InstanceSearch::FirstOk => self.options.instance_tries.max(1),
-            InstanceSearch::AllOk | InstanceSearch::Every { limit: 0 } => candidates.len(),
+            InstanceSearch::FirstOk
+            | InstanceSearch::AllOk
+            | InstanceSearch::Every { limit: 0 } => candidates.len(),
             InstanceSearch::Every { limit } => limit,
         };
         let mut done: Vec<Registration> = Vec::new();
@@ -1387,6 +1523,8 @@ impl Pipeline {
                         candidates: network_instances,
                         size_ratio: c.size_ratio,
                         parts: c.parts,
+                        truncated: c.truncated,
+                        cut: c.cut,
                     });
                     let stop = search == InstanceSearch::FirstOk && r.verdict == Verdict::Ok;
                     done.push(r);
@@ -2038,6 +2176,8 @@ mod tests {
             extent: size_ratio,
             size_ratio,
             plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
+            truncated: false,
+            cut: false,
             parts: 1,
             mask: Mask::filled(1, 1, false),
         };
@@ -2074,6 +2214,13 @@ mod tests {
                 (20000, 1)
             ]
         );
+
+        // One cut off by the image's border comes after every one of a fitting size whole
+        // in the image, joined parts included.
+        v[0].truncated = true;
+        InstanceCandidate::rank(&mut v);
+        let order: Vec<usize> = v.iter().map(|c| c.pixels).collect();
+        assert_eq!(order, [1600, 900, 12000, 2500, 5000, 9000, 20000]);
     }
 
     #[test]

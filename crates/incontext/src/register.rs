@@ -81,7 +81,7 @@ pub struct RegisterArgs {
 }
 
 /// A probability in [0, 1].
-fn parse_probability(s: &str) -> std::result::Result<f64, String> {
+pub(crate) fn parse_probability(s: &str) -> std::result::Result<f64, String> {
     let p: f64 = s.parse().map_err(|_| format!("{s:?} is not a number"))?;
     if (0.0..=1.0).contains(&p) {
         Ok(p)
