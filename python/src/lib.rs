@@ -768,6 +768,7 @@ struct RegistrationResult {
     timings: Vec<(&'static str, f64)>,
     mask: Option<(u32, u32, Vec<bool>)>,
     object_voxels: usize,
+    verification: Option<incontext::verify::Score>,
 }
 
 impl RegistrationResult {
@@ -795,6 +796,7 @@ impl RegistrationResult {
             ],
             mask: r.mask.as_ref().map(|m| (m.width, m.height, m.data.clone())),
             object_voxels: r.object_voxels,
+            verification: r.verification,
         }
     }
 }
@@ -875,6 +877,26 @@ impl RegistrationResult {
     #[getter]
     fn object_voxels(&self) -> usize {
         self.object_voxels
+    }
+
+    /// The render-and-compare scores of the pose, as `details.verification` of `incontext
+    /// register --json` (each in [0, 1]): `score` (coverage × (1 − 3·violation)), `coverage`
+    /// (share of the object's pixels the model explains), `agreement` (share of the model's
+    /// rendered pixels that agree with the depth), `visible_agreement` (the same among those
+    /// not hidden behind a nearer observed surface), `violation` (share in front of the
+    /// observed surface). None when the pose was not verified (rotations=1).
+    #[getter]
+    fn verification<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+        let Some(v) = self.verification else {
+            return Ok(None);
+        };
+        let d = PyDict::new(py);
+        d.set_item("score", v.score)?;
+        d.set_item("coverage", v.coverage)?;
+        d.set_item("agreement", v.agreement)?;
+        d.set_item("violation", v.violation)?;
+        d.set_item("visible_agreement", v.visible_agreement)?;
+        Ok(Some(d))
     }
 
     /// The pose as BOP writes it: {"cam_R_m2c": 9 floats (row-major), "cam_t_m2c": 3 floats

@@ -40,6 +40,7 @@ def test_the_same_pose_as_the_command_line_bit_for_bit(cli, demo, scene, registr
     assert r.t.tolist() == report["pose_bop"]["cam_t_m2c"]
     assert r.t.tolist() == report["pose"]["t"]  # the demo's mesh is in mm
     assert r.confidence == report["confidence"]
+    assert r.verification == report["details"]["verification"]
     # The demo's lone object: one instance, the single-object calibration either way.
     assert r.calibration == report["calibration"] == "object"
     assert r.verdict == report["verdict"]

@@ -648,6 +648,33 @@ pub const PART_DEPTH_GAP: f64 = 0.5;
 pub const CLOSE_SIZE_FACTOR: f64 = 1.25;
 
 impl InstanceCandidate {
+    /// A candidate of `mask`, whose back-projected `points` (normalised units, camera frame,
+    /// at least one) fix its extent against the model's `diameter`; `frame` is the sensor's
+    /// ([`sensor_frame`]).
+    fn new(
+        mask: Mask,
+        points: &[Vec3],
+        score: f32,
+        diameter: f64,
+        frame: (u32, u32, u32, u32),
+        parts: usize,
+        cut: bool,
+    ) -> InstanceCandidate {
+        let extent = visible_extent(points);
+        let size_ratio = extent / diameter;
+        InstanceCandidate {
+            score,
+            pixels: mask.data.iter().filter(|&&b| b).count(),
+            extent,
+            size_ratio,
+            plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
+            truncated: touches_border(&mask, frame),
+            cut,
+            parts,
+            mask,
+        }
+    }
+
     /// Whether the size ratio lies within [`CLOSE_SIZE_FACTOR`] of [`TYPICAL_SIZE_RATIO`].
     pub fn close_size(&self) -> bool {
         (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs() <= CLOSE_SIZE_FACTOR.ln()
@@ -1300,19 +1327,9 @@ impl Pipeline {
             if points.len() < 3 {
                 continue;
             }
-            let extent = visible_extent(&points);
-            let size_ratio = extent / diameter;
-            out.push(InstanceCandidate {
-                score: inst.score,
-                pixels: mask.data.iter().filter(|&&b| b).count(),
-                extent,
-                size_ratio,
-                plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
-                truncated: touches_border(&mask, frame),
-                cut: false,
-                parts: 1,
-                mask,
-            });
+            out.push(InstanceCandidate::new(
+                mask, &points, inst.score, diameter, frame, 1, false,
+            ));
             clouds.push(points);
         }
         // Touching instances each too small to be the object that together fit its size: a
@@ -1341,24 +1358,21 @@ impl Pipeline {
                     }
                 }
                 let union: Vec<Vec3> = g.iter().flat_map(|&i| clouds[i].iter().copied()).collect();
-                let extent = visible_extent(&union);
                 let pixels: usize = g.iter().map(|&i| out[i].pixels).sum();
                 let score = g
                     .iter()
                     .map(|&i| out[i].score * out[i].pixels as f32)
                     .sum::<f32>()
                     / pixels.max(1) as f32;
-                out.push(InstanceCandidate {
-                    score,
-                    pixels: mask.data.iter().filter(|&&b| b).count(),
-                    extent,
-                    size_ratio: extent / diameter,
-                    plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&(extent / diameter)),
-                    truncated: touches_border(&mask, frame),
-                    cut: false,
-                    parts: g.len(),
+                out.push(InstanceCandidate::new(
                     mask,
-                });
+                    &union,
+                    score,
+                    diameter,
+                    frame,
+                    g.len(),
+                    false,
+                ));
             }
         }
         // Pieces of instances too large to be the object: heaps the network did not split.
@@ -1389,19 +1403,10 @@ impl Pipeline {
                     mask.data[pixels[k]] = true;
                 }
                 let points: Vec<Vec3> = piece.iter().map(|&k| clouds[i][k]).collect();
-                let extent = visible_extent(&points);
-                let size_ratio = extent / diameter;
-                out.push(InstanceCandidate {
-                    score: out[i].score,
-                    pixels: piece.len(),
-                    extent,
-                    size_ratio,
-                    plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
-                    truncated: touches_border(&mask, frame),
-                    cut: true,
-                    parts: 1,
-                    mask,
-                });
+                let score = out[i].score;
+                out.push(InstanceCandidate::new(
+                    mask, &points, score, diameter, frame, 1, true,
+                ));
                 cut += 1;
             }
         }
