@@ -1511,12 +1511,13 @@ impl Pipeline {
                 clock,
             ) {
                 Ok(mut r) => {
-                    // The network chose the pixels among several instances: the confidence
-                    // of a verified pose is the clutter calibration's (it may be another
-                    // object). A lone instance keeps the single-object calibration: the
-                    // clutter one was fitted on scenes with several (`docs/decisions.md`).
+                    // The network chose the pixels among several instances, or they are a
+                    // piece of a heap: the confidence of a verified pose is the clutter
+                    // calibration's (it may be another object). A lone instance keeps the
+                    // single-object calibration: the clutter one was fitted on scenes with
+                    // several (`docs/decisions.md`).
                     if let (Some(e), Some(v), true) =
-                        (r.evidence, r.verification, network_instances > 1)
+                        (r.evidence, r.verification, network_instances > 1 || c.cut)
                     {
                         r.confidence =
                             clutter_calibration().apply(segmentation_evidence(e, v.agreement));
