@@ -3,6 +3,8 @@
 //! along its concave edges into instances each too small to be the model. This module finds
 //! groups of touching instances that together fit the model's size, so that the pipeline can
 //! register the group as one candidate (see [`crate::pipeline::InstanceCandidate::parts`]).
+//! The reverse also happens, a heap of objects left as one instance: [`heap_pieces`] cuts it
+//! into candidates of the model's size ([`crate::pipeline::InstanceCandidate::cut`]).
 //!
 //! Depths are in the object's normalised units along the camera's optical axis; pixel
 //! coordinates are row-major (x right, y down).
@@ -97,14 +99,13 @@ pub fn merged_groups(
         let mut ratio = ratios[seed];
         let mut rejected: Vec<usize> = Vec::new();
         loop {
-            // Neighbours of the group by their contacts with it, most first.
-            let mut next: Vec<(usize, usize)> = (0..ratios.len())
+            // The neighbour with the most contacts with the group (ties: the lowest index).
+            let next = (0..ratios.len())
                 .filter(|&j| small(j) && !group.contains(&j) && !rejected.contains(&j))
                 .map(|j| (j, group.iter().map(|&g| touching(g, j)).sum::<usize>()))
                 .filter(|&(_, c)| c >= MIN_CONTACTS)
-                .collect();
-            next.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
-            let Some(&(j, _)) = next.first() else { break };
+                .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)));
+            let Some((j, _)) = next else { break };
             let mut grown = group.clone();
             grown.push(j);
             let r = ratio_of(&grown);
@@ -124,16 +125,16 @@ pub fn merged_groups(
 }
 
 /// Pieces of an instance too large to be the model (a heap of objects the network did not
-/// split), each a candidate for one object of the heap, nearest first. `pixels` are the
-/// instance's pixel indices and `points` their back-projected points (camera frame, the same
-/// units as `diameter`, the model's diameter), in the same order.
+/// split), each a candidate for one object of the heap, nearest first. `points` are the
+/// instance's back-projected pixels (camera frame, the same units as `diameter`, the model's
+/// diameter).
 ///
 /// The nearest pixel not yet covered seeds a piece: the object it lies on is taken to be
 /// centred `0.3·diameter` behind it along its viewing ray, and the piece holds the instance's
 /// pixels within `0.5·diameter` of that centre; those within `0.35·diameter` seed no other.
 /// Pieces under `min_pixels`, or sharing more than half their pixels with pieces already
-/// cut, are dropped; at most `max_pieces` are returned, each as sorted
-/// indices into `pixels`.
+/// cut, are dropped; at most `max_pieces` are returned, each as sorted indices into
+/// `points`.
 pub fn heap_pieces(
     points: &[ic_geometry::glam::Vec3],
     diameter: f32,

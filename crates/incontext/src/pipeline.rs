@@ -569,8 +569,8 @@ pub struct InstanceCandidate {
     pub size_ratio: f64,
     /// Whether the size ratio lies in [[`MIN_SIZE_RATIO`], [`MAX_SIZE_RATIO`]].
     pub plausible: bool,
-    /// Whether its mask reaches the image's border (within [`BORDER_PX`]): the object may be
-    /// cut off, its extent and pose less sure.
+    /// Whether its mask reaches the border of the sensor's frame (within [`BORDER_PX`]): the
+    /// object may be cut off, its extent and pose less sure.
     pub truncated: bool,
     /// Whether it is a piece cut from an instance too large to be the model (a heap the
     /// network did not split; [`crate::parts::heap_pieces`]).
@@ -675,11 +675,6 @@ impl InstanceCandidate {
         }
     }
 
-    /// Whether the size ratio lies within [`CLOSE_SIZE_FACTOR`] of [`TYPICAL_SIZE_RATIO`].
-    pub fn close_size(&self) -> bool {
-        (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs() <= CLOSE_SIZE_FACTOR.ln()
-    }
-
     /// Ranking key: plausible first; the network's instances (and joined parts) before
     /// pieces cut from heaps; then those within [`CLOSE_SIZE_FACTOR`] of
     /// [`TYPICAL_SIZE_RATIO`]: whole in the image before cut off by its border, the network's
@@ -687,7 +682,7 @@ impl InstanceCandidate {
     /// it (in log scale); then the segmentation score.
     fn rank_key(&self) -> (bool, bool, bool, bool, bool, f64, f32) {
         let off = (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs();
-        let close = self.close_size();
+        let close = off <= CLOSE_SIZE_FACTOR.ln();
         (
             self.plausible,
             !self.cut,
@@ -852,7 +847,7 @@ pub struct InstanceChoice {
     pub size_ratio: f64,
     /// How many of the network's instances it joins ([`InstanceCandidate::parts`]).
     pub parts: usize,
-    /// Whether its mask reaches the image's border ([`InstanceCandidate::truncated`]).
+    /// Whether its mask reaches the sensor frame's border ([`InstanceCandidate::truncated`]).
     pub truncated: bool,
     /// Whether it is a piece cut from a heap ([`InstanceCandidate::cut`]).
     pub cut: bool,
@@ -1339,16 +1334,15 @@ impl Pipeline {
             let touching =
                 crate::parts::contacts(&masks, depth_n, (PART_DEPTH_GAP * diameter) as f32);
             let ratios: Vec<f64> = out.iter().map(|c| c.size_ratio).collect();
+            let union_of = |g: &[usize]| -> Vec<Vec3> {
+                g.iter().flat_map(|&i| clouds[i].iter().copied()).collect()
+            };
             let groups = crate::parts::merged_groups(
                 &ratios,
                 &touching,
                 TYPICAL_SIZE_RATIO / CLOSE_SIZE_FACTOR,
                 TYPICAL_SIZE_RATIO * CLOSE_SIZE_FACTOR,
-                |g| {
-                    let union: Vec<Vec3> =
-                        g.iter().flat_map(|&i| clouds[i].iter().copied()).collect();
-                    visible_extent(&union) / diameter
-                },
+                |g| visible_extent(&union_of(g)) / diameter,
             );
             for g in groups {
                 let mut mask = out[g[0]].mask.clone();
@@ -1357,7 +1351,7 @@ impl Pipeline {
                         *m |= o;
                     }
                 }
-                let union: Vec<Vec3> = g.iter().flat_map(|&i| clouds[i].iter().copied()).collect();
+                let union = union_of(&g);
                 let pixels: usize = g.iter().map(|&i| out[i].pixels).sum();
                 let score = g
                     .iter()
@@ -2291,11 +2285,6 @@ mod tests {
         assert!(d <= object.diameter + 1e-4, "{d}");
         assert!(d > EQUIVALENT_ADD_S * object.diameter, "{d}");
     }
-}
-
-#[cfg(test)]
-mod degenerate_tests {
-    use super::*;
 
     #[test]
     fn collinear_object_points_are_not_found_rather_than_an_internal_error() {
