@@ -1,6 +1,7 @@
 //! The inference API: load a checkpoint, estimate poses.
 
 use std::path::Path;
+use std::sync::Mutex;
 
 use candle_core::{DType, Device};
 use candle_nn::VarBuilder;
@@ -11,6 +12,7 @@ use serde::{Deserialize, Serialize};
 use crate::config::PoseConfig;
 use crate::network::{HeadOutput, PairBatch, PoseNet, SweepBatch, check_points};
 use crate::recover::{RecoveryOptions, SampledPose, SamplingOptions, recover_pose, sample_poses};
+use crate::transformer::ModelSide;
 use crate::{PoseError, Result, checkpoint};
 
 /// The pose of the model in the camera frame and how well it is supported.
@@ -60,12 +62,43 @@ impl Default for SweepOptions {
 
 /// A trained network ready for inference (no autograd graph is recorded: the weights are
 /// plain tensors memory-mapped from the checkpoint).
+///
+/// An estimator loaded from a checkpoint keeps the model side of its latest rotation sweeps
+/// ([`PoseEstimator::estimate_rotations`]), up to [`MODEL_SIDE_BYTES`]: sweeping the same
+/// model points with the same rotations again (the same object registered in another frame,
+/// or another instance of it in the same frame) encodes only the observed cloud.
 pub struct PoseEstimator {
     net: PoseNet,
     config: PoseConfig,
     device: Device,
     /// How correspondences become a pose (defaults: see [`RecoveryOptions`]).
     pub recovery: RecoveryOptions,
+    /// `None` when the weights may change (an estimator wrapping a network being trained).
+    model_sides: Option<Mutex<SideCache>>,
+}
+
+/// The memory a loaded [`PoseEstimator`] gives to kept model sides: 96 MiB, four sweeps of
+/// the pipeline's default (24 copies of 320 points at d = 128 take 5·24·320·128 floats,
+/// ≈ 19.7 MB).
+pub const MODEL_SIDE_BYTES: usize = 96 << 20;
+
+/// Kept model sides, most recently used last, with their memory budget in bytes.
+struct SideCache {
+    budget: usize,
+    kept: Vec<CachedSide>,
+}
+
+/// One kept model side, with the exact inputs it was computed from.
+struct CachedSide {
+    model: Vec<Vec3>,
+    rotations: Vec<[f64; 9]>,
+    side: ModelSide,
+    bytes: usize,
+}
+
+/// A rotation matrix as plain numbers (the cache compares them exactly).
+fn rotation_key(p: &Pose) -> [f64; 9] {
+    p.rotation.to_cols_array()
 }
 
 impl PoseEstimator {
@@ -94,17 +127,81 @@ impl PoseEstimator {
             config,
             device: device.clone(),
             recovery: RecoveryOptions::default(),
-        })
+            model_sides: None,
+        }
+        .keeping_model_sides(MODEL_SIDE_BYTES))
     }
 
-    /// Wraps an existing network (e.g. the one being trained, for validation).
+    /// Wraps an existing network (e.g. the one being trained, for validation). Its weights
+    /// may change between calls, so no model side is kept (see
+    /// [`PoseEstimator::keeping_model_sides`]).
     pub fn from_net(net: PoseNet, config: PoseConfig, device: Device) -> Self {
         PoseEstimator {
             net,
             config,
             device,
             recovery: RecoveryOptions::default(),
+            model_sides: None,
         }
+    }
+
+    /// Keeps the model sides of the latest rotation sweeps, up to `budget` bytes (a loaded
+    /// estimator keeps [`MODEL_SIDE_BYTES`]): only for weights that no longer change.
+    pub fn keeping_model_sides(mut self, budget: usize) -> Self {
+        self.model_sides = Some(Mutex::new(SideCache {
+            budget,
+            kept: Vec::new(),
+        }));
+        self
+    }
+
+    /// The rotation sweeps whose model side is kept now, and their bytes (0, 0 when none is
+    /// kept).
+    pub fn kept_model_sides(&self) -> (usize, usize) {
+        self.model_sides.as_ref().map_or((0, 0), |m| {
+            let cache = m.lock().unwrap_or_else(|e| e.into_inner());
+            (cache.kept.len(), cache.kept.iter().map(|c| c.bytes).sum())
+        })
+    }
+
+    /// The model side of `batch` (the copies of `model_points` by `rotations`): the kept one
+    /// when these exact inputs were swept before, else computed (and kept when keeping).
+    fn model_side(
+        &self,
+        batch: &SweepBatch,
+        model_points: &[Vec3],
+        rotations: &[Pose],
+    ) -> Result<ModelSide> {
+        let Some(cache) = &self.model_sides else {
+            return Ok(self.net.sweep_model_side(batch)?);
+        };
+        let key: Vec<[f64; 9]> = rotations.iter().map(rotation_key).collect();
+        let same = |c: &CachedSide| c.rotations == key && c.model == model_points;
+        {
+            let mut cache = cache.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(i) = cache.kept.iter().position(same) {
+                let c = cache.kept.remove(i);
+                let side = c.side.clone();
+                cache.kept.push(c);
+                return Ok(side);
+            }
+        }
+        let side = self.net.sweep_model_side(batch)?;
+        let bytes = side.bytes()?;
+        let mut cache = cache.lock().unwrap_or_else(|e| e.into_inner());
+        if bytes <= cache.budget && !cache.kept.iter().any(same) {
+            // The least recently used go first.
+            while cache.kept.iter().map(|c| c.bytes).sum::<usize>() + bytes > cache.budget {
+                cache.kept.remove(0);
+            }
+            cache.kept.push(CachedSide {
+                model: model_points.to_vec(),
+                rotations: key,
+                side: side.clone(),
+                bytes,
+            });
+        }
+        Ok(side)
     }
 
     pub fn config(&self) -> &PoseConfig {
@@ -164,7 +261,8 @@ impl PoseEstimator {
     /// of `model_points` (model frame, normalised units) turned by that rotation about the
     /// model's origin, against the same `observed_points` (camera frame). All copies go through
     /// the network as one batch, with the observed cloud encoded once
-    /// ([`PoseNet::forward_sweep_pruned`]); with `options.keep` below the number of rotations,
+    /// ([`PoseNet::forward_sweep_side`]; the copies' side comes from the kept ones when
+    /// these model points and rotations were swept before); with `options.keep` below the number of rotations,
     /// only copy 0 and the `keep − 1` copies whose DGCNN features best match the observed
     /// ones go on through the transformer. Each returned pose maps the *unrotated* model
     /// points onto the observed points (the copy's pose composed with its rotation). With
@@ -187,7 +285,8 @@ impl PoseEstimator {
             self.config.net.k,
             &self.device,
         )?;
-        let (out, kept) = self.net.forward_sweep_pruned(&batch, options.keep)?;
+        let side = self.model_side(&batch, model_points, rotations)?;
+        let (out, kept) = self.net.forward_sweep_side(&side, &batch, options.keep)?;
         let matches = out.matches()?;
         Ok(kept
             .iter()

@@ -52,7 +52,7 @@ pub mod transformer;
 // The candle pool settings belong to the fused kernels, which live in `ic_nn::ops`.
 pub use config::{Head, NetConfig, OtConfig, OtLoss, PoseConfig, TrainConfig};
 pub use error::{PoseError, Result};
-pub use estimator::{CopyEstimate, PoseEstimate, PoseEstimator, SweepOptions};
+pub use estimator::{CopyEstimate, MODEL_SIDE_BYTES, PoseEstimate, PoseEstimator, SweepOptions};
 /// The ground-truth assignment M̄ the loss reads (defined in `ic_geometry`, built by `ic_data`).
 pub use ic_geometry::Assignment;
 pub use ic_nn::ops::{CANDLE_CPU_ENV, tune_candle_cpu_pool};
@@ -64,3 +64,4 @@ pub use network::{
 pub use recover::{
     Recovered, RecoveryOptions, Refine, SampledPose, SamplingOptions, recover_pose, sample_poses,
 };
+pub use transformer::ModelSide;

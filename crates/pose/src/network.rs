@@ -12,7 +12,7 @@ use ic_geometry::Assignment;
 use crate::config::{Head, NetConfig, OtLoss};
 use crate::dgcnn::Dgcnn;
 use crate::layers::log_softmax_last;
-use crate::transformer::Transformer;
+use crate::transformer::{ModelSide, Transformer};
 use crate::{PoseError, Result, knn, sinkhorn};
 
 /// A batch of (model, observed) point-set pairs ready for the network: centred,
@@ -341,32 +341,51 @@ impl PoseNet {
     ) -> CResult<(HeadOutput, Vec<usize>)> {
         let tx = self.encode_cloud(&batch.model, &batch.model_graph, false)?;
         let ty = self.encode_cloud(&batch.observed, &batch.observed_graph, false)?;
-        let b = tx.dim(0)?;
-        let keep = keep.clamp(1, b);
-        let (tx, kept) = if keep < b {
-            let unit = |t: &Tensor| -> CResult<Tensor> {
-                t.broadcast_div(&(t.sqr()?.sum_keepdim(2)?.sqrt()? + 1e-6)?)
-            };
-            let (nx, ny) = (unit(&tx)?, unit(&ty)?);
-            let (_, n, d) = ny.dims3()?;
-            let sim = ny.broadcast_as((b, n, d))?.contiguous()?.matmul(&nx.t()?)?;
-            let score: Vec<f32> = sim.max(2)?.mean(1)?.to_vec1()?;
-            let mut order: Vec<usize> = (1..b).collect();
-            order.sort_by(|&i, &j| score[j].total_cmp(&score[i]).then(i.cmp(&j)));
-            let mut kept: Vec<usize> = std::iter::once(0)
-                .chain(order.into_iter().take(keep - 1))
-                .collect();
-            kept.sort_unstable();
-            let idx = Tensor::from_vec(
-                kept.iter().map(|&i| i as u32).collect::<Vec<_>>(),
-                kept.len(),
-                tx.device(),
-            )?;
-            (tx.index_select(&idx, 0)?.contiguous()?, kept)
-        } else {
-            (tx, (0..b).collect())
+        let kept = prune_copies(&tx, &ty, keep)?;
+        let tx = match &kept {
+            Some((idx, _)) => tx.index_select(idx, 0)?.contiguous()?,
+            None => tx,
         };
-        let (fx, fy) = self.transformer.forward_shared(&tx, &ty)?;
+        let side = self.transformer.model_side(&tx)?;
+        let (fx, fy) = self.transformer.forward_model_side(&side, &ty)?;
+        let b = batch.len();
+        Ok((
+            self.head(&fx, &fy)?,
+            kept.map_or_else(|| (0..b).collect(), |(_, k)| k),
+        ))
+    }
+
+    /// Everything a sweep computes from the model's rotated copies alone (their DGCNN
+    /// features and the transformer's model side): independent of the observed cloud, so it
+    /// can be kept and reused against any observed cloud ([`PoseNet::forward_sweep_side`]).
+    pub fn sweep_model_side(&self, batch: &SweepBatch) -> CResult<ModelSide> {
+        let tx = self.encode_cloud(&batch.model, &batch.model_graph, false)?;
+        self.transformer.model_side(&tx)
+    }
+
+    /// [`PoseNet::forward_sweep_pruned`] with the model side computed beforehand by
+    /// [`PoseNet::sweep_model_side`] on the same copies; only `batch`'s observed cloud is
+    /// encoded. The same values as `forward_sweep_pruned` (to f32 rounding, tested).
+    pub fn forward_sweep_side(
+        &self,
+        side: &ModelSide,
+        batch: &SweepBatch,
+        keep: usize,
+    ) -> CResult<(HeadOutput, Vec<usize>)> {
+        let b = side.copies()?;
+        if b != batch.len() {
+            candle_core::bail!(
+                "forward_sweep_side: the model side has {b} copies, the sweep {}",
+                batch.len()
+            );
+        }
+        let ty = self.encode_cloud(&batch.observed, &batch.observed_graph, false)?;
+        // Tensors share their storage: cloning the side copies no values.
+        let (side, kept) = match prune_copies(&side.features, &ty, keep)? {
+            Some((idx, kept)) => (side.select(&idx)?, kept),
+            None => (side.clone(), (0..b).collect()),
+        };
+        let (fx, fy) = self.transformer.forward_model_side(&side, &ty)?;
         Ok((self.head(&fx, &fy)?, kept))
     }
 
@@ -389,6 +408,36 @@ impl PoseNet {
             loss: self.cfg.ot.loss,
         })
     }
+}
+
+/// The copies a pruned sweep keeps (see [`PoseNet::forward_sweep_pruned`]): `None` when
+/// `keep` covers every copy of `tx` (`[B, M, d]`), else their indices as a u32 tensor and as a
+/// list, in batch order, copy 0 first. `ty`: `[1, N, d]`.
+fn prune_copies(tx: &Tensor, ty: &Tensor, keep: usize) -> CResult<Option<(Tensor, Vec<usize>)>> {
+    let b = tx.dim(0)?;
+    let keep = keep.clamp(1, b);
+    if keep >= b {
+        return Ok(None);
+    }
+    let unit = |t: &Tensor| -> CResult<Tensor> {
+        t.broadcast_div(&(t.sqr()?.sum_keepdim(2)?.sqrt()? + 1e-6)?)
+    };
+    let (nx, ny) = (unit(tx)?, unit(ty)?);
+    let (_, n, d) = ny.dims3()?;
+    let sim = ny.broadcast_as((b, n, d))?.contiguous()?.matmul(&nx.t()?)?;
+    let score: Vec<f32> = sim.max(2)?.mean(1)?.to_vec1()?;
+    let mut order: Vec<usize> = (1..b).collect();
+    order.sort_by(|&i, &j| score[j].total_cmp(&score[i]).then(i.cmp(&j)));
+    let mut kept: Vec<usize> = std::iter::once(0)
+        .chain(order.into_iter().take(keep - 1))
+        .collect();
+    kept.sort_unstable();
+    let idx = Tensor::from_vec(
+        kept.iter().map(|&i| i as u32).collect::<Vec<_>>(),
+        kept.len(),
+        tx.device(),
+    )?;
+    Ok(Some((idx, kept)))
 }
 
 /// The paper's normalised negative log-likelihood, averaged over the pairs of the batch.

@@ -37,14 +37,27 @@ impl MultiHeadAttention {
 
     /// `query`: `[B, Pq, d]`, `context`: `[B, Pk, d]` → `[B, Pq, d]`.
     pub fn forward(&self, query: &Tensor, context: &Tensor) -> Result<Tensor> {
+        let (k, v) = self.keys_values(context)?;
+        self.attend(&self.queries(query)?, &k, &v)
+    }
+
+    /// The scaled queries `Q·(1/√(d/heads))` of `query` `[B, Pq, d]`.
+    pub fn queries(&self, query: &Tensor) -> Result<Tensor> {
         let d = query.dim(2)?;
         let scale = 1.0 / ((d / self.heads) as f64).sqrt();
         // Scaling Q (P·d values) instead of the scores (P·P' values).
-        let q = (self.q.forward(query)? * scale)?;
-        let k = self.k.forward(context)?;
-        let v = self.v.forward(context)?;
-        let out = multi_head_attention(&q, &k, &v, self.heads)?;
-        self.o.forward(&out)
+        self.q.forward(query)? * scale
+    }
+
+    /// The keys and values of `context` `[B, Pk, d]`.
+    pub fn keys_values(&self, context: &Tensor) -> Result<(Tensor, Tensor)> {
+        Ok((self.k.forward(context)?, self.v.forward(context)?))
+    }
+
+    /// The attention of [`MultiHeadAttention::queries`] over
+    /// [`MultiHeadAttention::keys_values`] (same batch size), through the output projection.
+    pub fn attend(&self, q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+        self.o.forward(&multi_head_attention(q, k, v, self.heads)?)
     }
 }
 
@@ -142,9 +155,84 @@ impl DecoderLayer {
     /// The rest of the layer (cross-attention, feed-forward, final LayerNorm) on the output of
     /// [`DecoderLayer::self_attention`].
     pub fn after_self_attention(&self, x: &Tensor, memory: &Tensor) -> Result<Tensor> {
-        let x = (x + self.cross_attn.forward(&self.ln2.forward(x)?, memory)?)?;
+        let (k, v) = self.cross_attn.keys_values(memory)?;
+        self.after_cross_queries(x, &self.cross_queries(x)?, &k, &v)
+    }
+
+    /// The cross-attention's scaled queries of `x`, the output of
+    /// [`DecoderLayer::self_attention`].
+    pub fn cross_queries(&self, x: &Tensor) -> Result<Tensor> {
+        self.cross_attn.queries(&self.ln2.forward(x)?)
+    }
+
+    /// The cross-attention's keys and values of the encoder memory.
+    pub fn cross_keys_values(&self, memory: &Tensor) -> Result<(Tensor, Tensor)> {
+        self.cross_attn.keys_values(memory)
+    }
+
+    /// [`DecoderLayer::after_self_attention`] from the parts computed apart: `x` (the output of
+    /// the self-attention), its cross queries `q` and the memory's keys and values `k`, `v`.
+    pub fn after_cross_queries(
+        &self,
+        x: &Tensor,
+        q: &Tensor,
+        k: &Tensor,
+        v: &Tensor,
+    ) -> Result<Tensor> {
+        let x = (x + self.cross_attn.attend(q, k, v)?)?;
         let x = (&x + self.ff.forward(&self.ln3.forward(&x)?)?)?;
         self.norm.forward(&x)
+    }
+}
+
+/// What φ needs from `B` model clouds alone in a sweep against one observed cloud
+/// ([`Transformer::model_side`]): computed once per set of rotated copies and reusable
+/// against any observed cloud. All `[B, M, d]`, point-major.
+#[derive(Clone, Debug)]
+pub struct ModelSide {
+    /// θx, the DGCNN features of the copies.
+    pub features: Tensor,
+    /// The decoder's self-attention sub-layer on θx.
+    self_attended: Tensor,
+    /// Its cross-attention queries (scaled).
+    cross_queries: Tensor,
+    /// The keys and values of the model's encoder memory, for the observed side's
+    /// cross-attention.
+    memory_keys: Tensor,
+    memory_values: Tensor,
+}
+
+impl ModelSide {
+    /// Copies in the side.
+    pub fn copies(&self) -> Result<usize> {
+        self.features.dim(0)
+    }
+
+    /// The memory the side's tensors take, in bytes.
+    pub fn bytes(&self) -> Result<usize> {
+        let all = [
+            &self.features,
+            &self.self_attended,
+            &self.cross_queries,
+            &self.memory_keys,
+            &self.memory_values,
+        ];
+        Ok(all
+            .iter()
+            .map(|t| t.elem_count() * t.dtype().size_in_bytes())
+            .sum())
+    }
+
+    /// The copies `indices` (u32 `[K]`) of the side, in that order.
+    pub fn select(&self, indices: &Tensor) -> Result<ModelSide> {
+        let pick = |t: &Tensor| t.index_select(indices, 0)?.contiguous();
+        Ok(ModelSide {
+            features: pick(&self.features)?,
+            self_attended: pick(&self.self_attended)?,
+            cross_queries: pick(&self.cross_queries)?,
+            memory_keys: pick(&self.memory_keys)?,
+            memory_values: pick(&self.memory_values)?,
+        })
     }
 }
 
@@ -177,14 +265,37 @@ impl Transformer {
 
     /// [`Transformer::forward`] for `B` model clouds `tx` (`[B, M, d]`) against one observed
     /// cloud `ty` (`[1, N, d]`), as if `ty` were repeated `B` times, with everything that
-    /// depends on `ty` alone computed once: its encoder memory and its decoder self-attention.
-    /// Returns `(fx [B, M, d], fy [B, N, d])`, the same values as `forward` on the repeated
-    /// batch.
+    /// depends on `ty` alone computed once ([`Transformer::forward_model_side`]). Returns
+    /// `(fx [B, M, d], fy [B, N, d])`, the same values as `forward` on the repeated batch.
     pub fn forward_shared(&self, tx: &Tensor, ty: &Tensor) -> Result<(Tensor, Tensor)> {
-        let b = tx.dim(0)?;
+        self.forward_model_side(&self.model_side(tx)?, ty)
+    }
+
+    /// The part of [`Transformer::forward_shared`] that depends on the model clouds `tx`
+    /// (`[B, M, d]`) alone.
+    pub fn model_side(&self, tx: &Tensor) -> Result<ModelSide> {
+        let self_attended = self.decoder.self_attention(tx)?;
+        let cross_queries = self.decoder.cross_queries(&self_attended)?;
+        let (memory_keys, memory_values) =
+            self.decoder.cross_keys_values(&self.encoder.forward(tx)?)?;
+        Ok(ModelSide {
+            features: tx.clone(),
+            self_attended,
+            cross_queries,
+            memory_keys,
+            memory_values,
+        })
+    }
+
+    /// [`Transformer::forward_shared`] from the model side computed apart: everything that
+    /// depends on the observed cloud `ty` (`[1, N, d]`) alone — its encoder memory with that
+    /// memory's keys and values, its decoder self-attention and cross queries — is computed
+    /// once and shared by the `B` copies.
+    pub fn forward_model_side(&self, side: &ModelSide, ty: &Tensor) -> Result<(Tensor, Tensor)> {
+        let b = side.copies()?;
         if ty.dim(0)? != 1 {
             candle_core::bail!(
-                "forward_shared: the observed batch has {} clouds, not 1",
+                "forward_model_side: the observed batch has {} clouds, not 1",
                 ty.dim(0)?
             );
         }
@@ -192,11 +303,23 @@ impl Transformer {
             let (_, p, d) = t.dims3()?;
             t.broadcast_as((b, p, d))?.contiguous()
         };
-        let memory_y = repeat(&self.encoder.forward(ty)?)?;
-        let fx = (tx + self.decoder.forward(tx, &memory_y)?)?;
-        let memory_x = self.encoder.forward(tx)?;
-        let self_y = repeat(&self.decoder.self_attention(ty)?)?;
-        let fy = (repeat(ty)? + self.decoder.after_self_attention(&self_y, &memory_x)?)?;
+        let (ky, vy) = self.decoder.cross_keys_values(&self.encoder.forward(ty)?)?;
+        let fx = (&side.features
+            + self.decoder.after_cross_queries(
+                &side.self_attended,
+                &side.cross_queries,
+                &repeat(&ky)?,
+                &repeat(&vy)?,
+            )?)?;
+        let self_y = self.decoder.self_attention(ty)?;
+        let qy = self.decoder.cross_queries(&self_y)?;
+        let fy = (repeat(ty)?
+            + self.decoder.after_cross_queries(
+                &repeat(&self_y)?,
+                &repeat(&qy)?,
+                &side.memory_keys,
+                &side.memory_values,
+            )?)?;
         Ok((fx, fy))
     }
 }

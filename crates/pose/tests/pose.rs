@@ -516,6 +516,85 @@ fn pruned_sweep_keeps_copy_zero_and_matches_the_full_sweep_on_the_kept_copies() 
     assert_eq!(est.net().forward_sweep_pruned(&sweep, 4).unwrap().1, kept);
 }
 
+/// A kept model side gives the estimates of a fresh sweep, for other observed clouds too; the
+/// estimator keeps sides within its memory budget, least recently used out first, and one
+/// wrapping a network in training keeps none.
+#[test]
+fn kept_model_sides_give_the_fresh_sweeps_estimates_and_stay_within_their_budget() {
+    let rotations = ic_geometry::rotations::rotation_group(12).unwrap();
+    let trainer = Trainer::new(tiny(Head::Softmax), 9).unwrap();
+    let fresh = trainer.estimator();
+    let keeping = trainer.estimator().keeping_model_sides(usize::MAX);
+    let p = pair(51, 40, 30, 25);
+    let q = pair(52, 40, 30, 25);
+    for keep in [usize::MAX, 5] {
+        let options = ic_pose::SweepOptions {
+            keep,
+            ..ic_pose::SweepOptions::default()
+        };
+        for observed in [&p.observed, &q.observed, &p.observed] {
+            let a = fresh
+                .estimate_rotations(&p.model, &rotations, observed, &options)
+                .unwrap();
+            let b = keeping
+                .estimate_rotations(&p.model, &rotations, observed, &options)
+                .unwrap();
+            assert_eq!(a.len(), b.len());
+            let mut posed = 0;
+            for (a, b) in a.iter().zip(&b) {
+                // An untrained network may give a copy degenerate correspondences: both alike.
+                let (Ok(a), Ok(b)) = (a, b) else {
+                    assert_eq!(a.is_ok(), b.is_ok());
+                    continue;
+                };
+                posed += 1;
+                assert_eq!(a.rotation, b.rotation);
+                let angle = a
+                    .estimate
+                    .pose
+                    .rotation_angle_to(&b.estimate.pose)
+                    .to_degrees();
+                assert!(angle < 1e-3, "keep {keep}: {angle}°");
+                assert!(
+                    (a.estimate.pose.translation - b.estimate.pose.translation).length() < 1e-5
+                );
+            }
+            assert!(posed >= a.len() / 2, "{posed} of {} copies posed", a.len());
+        }
+    }
+    assert_eq!(fresh.kept_model_sides(), (0, 0));
+    let (count, one) = keeping.kept_model_sides();
+    assert_eq!(count, 1, "one model, one rotation set");
+    // A budget of two such sides: the third sweep evicts the least recently used.
+    let bounded = trainer.estimator().keeping_model_sides(2 * one);
+    let sweep = |r: &[ic_geometry::Pose]| {
+        bounded
+            .estimate_rotations(&p.model, r, &p.observed, &ic_pose::SweepOptions::default())
+            .unwrap();
+    };
+    // Three rotation sets of 12 (orders differ, so the copies differ): each side is `one`.
+    let a = rotations.clone();
+    let b: Vec<_> = rotations.iter().rev().copied().collect();
+    let c: Vec<_> = rotations.iter().cycle().skip(1).take(12).copied().collect();
+    sweep(&a);
+    sweep(&b);
+    assert_eq!(bounded.kept_model_sides(), (2, 2 * one));
+    sweep(&c);
+    assert_eq!(bounded.kept_model_sides(), (2, 2 * one), "`a` evicted");
+    sweep(&b);
+    assert_eq!(
+        bounded.kept_model_sides(),
+        (2, 2 * one),
+        "`b` found, nothing added"
+    );
+    // A side larger than the whole budget is not kept and evicts nothing.
+    let tight = trainer.estimator().keeping_model_sides(one - 1);
+    tight
+        .estimate_rotations(&p.model, &a, &p.observed, &ic_pose::SweepOptions::default())
+        .unwrap();
+    assert_eq!(tight.kept_model_sides(), (0, 0));
+}
+
 /// Of a pair's candidate ground truths (the true pose's, then a symmetric equivalent's), the
 /// one the output already fits is chosen, per pair; its loss is the lower one; a pair with a
 /// single candidate keeps it; a candidate that counts nothing never wins.
