@@ -145,7 +145,9 @@ pub struct LoadedPose {
     pub estimator: PoseEstimator,
     /// Where it came from (for the run's printed configuration).
     pub source: String,
-    pub(crate) _file: CheckpointFile,
+    /// The memory-mapped file, kept while the network lives; `None` once a temporary copy of
+    /// the embedded bytes was removed (Unix keeps the mapping of a removed file).
+    pub(crate) _file: Option<CheckpointFile>,
 }
 
 /// Loads `path`, or the shipped network of `head` when `path` is `None`. With both, the
@@ -179,6 +181,17 @@ pub fn load_pose(path: Option<&Path>, head: Option<Head>) -> Result<LoadedPose> 
             want.as_str()
         )));
     }
+    // The temporary copy of the embedded network goes at once: on Unix its memory map stays
+    // valid without the file, and a process ended by a signal (which exits without running
+    // destructors) then leaves nothing in the temporary folder.
+    let file = match file {
+        #[cfg(unix)]
+        CheckpointFile::Temp(t) => {
+            let _ = t.close();
+            None
+        }
+        f => Some(f),
+    };
     Ok(LoadedPose {
         estimator,
         source,

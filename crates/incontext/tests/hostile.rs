@@ -589,7 +589,10 @@ fn an_interrupted_run_leaves_no_temporary_file_and_no_output_without_its_pose() 
             .collect()
     };
     // Each write sleeps 5 s between its temporary file and the rename (fault injection), so
-    // the signal lands while a temporary file exists.
+    // the signal lands while a temporary file exists. The run's own temporary folder must be
+    // left empty too (the shipped networks are copied there from the binary).
+    let tmp_dir = sc.path("tmp");
+    std::fs::create_dir(&tmp_dir).unwrap();
     for signal in [libc::SIGTERM, libc::SIGINT] {
         for p in [&pose, &overlay, &ply] {
             let _ = std::fs::remove_file(p);
@@ -597,6 +600,7 @@ fn an_interrupted_run_leaves_no_temporary_file_and_no_output_without_its_pose() 
         let mut child = Command::new(env!("CARGO_BIN_EXE_incontext"))
             .args(strs(&args))
             .env("INCONTEXT_TEST_WRITE_DELAY_MS", "5000")
+            .env("TMPDIR", &tmp_dir)
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
@@ -623,6 +627,11 @@ fn an_interrupted_run_leaves_no_temporary_file_and_no_output_without_its_pose() 
             stderr(&o)
         );
         assert_eq!(temporaries(&out_dir), Vec::<String>::new());
+        let left: Vec<_> = std::fs::read_dir(&tmp_dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert!(left.is_empty(), "signal {signal}: left in TMPDIR: {left:?}");
         if overlay.exists() || ply.exists() {
             assert!(pose.exists(), "an output without pose.json");
         }
