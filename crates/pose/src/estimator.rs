@@ -262,9 +262,9 @@ impl PoseEstimator {
     /// model's origin, against the same `observed_points` (camera frame). All copies go through
     /// the network as one batch, with the observed cloud encoded once
     /// ([`PoseNet::forward_sweep_side`]; the copies' side comes from the kept ones when
-    /// these model points and rotations were swept before); with `options.keep` below the number of rotations,
-    /// only copy 0 and the `keep − 1` copies whose DGCNN features best match the observed
-    /// ones go on through the transformer. Each returned pose maps the *unrotated* model
+    /// these model points and rotations were swept before); with `options.keep` below the
+    /// number of rotations, only copy 0 and the `keep − 1` copies whose DGCNN features best
+    /// match the observed ones meet the observed cloud in the transformer. Each returned pose maps the *unrotated* model
     /// points onto the observed points (the copy's pose composed with its rotation). With
     /// `options.sampling`, each copy also gets the poses of minimal sets drawn from its
     /// correspondences ([`sample_poses`], seeded by `options.seed` and the copy's index).

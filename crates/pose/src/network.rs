@@ -332,27 +332,16 @@ impl PoseNet {
     /// [`PoseNet::forward_sweep`] for the `keep` most promising copies only: after the DGCNN,
     /// each copy is ranked by how well its features match the observed cloud's (for each
     /// observed point the best cosine similarity over the copy's points, averaged), and only
-    /// copy 0 and the best `keep − 1` others go through the transformer and the head. Returns
-    /// the head output of the kept copies and their indices in the batch, in batch order.
+    /// copy 0 and the best `keep − 1` others meet the observed cloud in the transformer and
+    /// go through the head. Returns the head output of the kept copies and their indices in
+    /// the batch, in batch order. The copies' own side is computed for all of them
+    /// ([`PoseNet::sweep_model_side`], then [`PoseNet::forward_sweep_side`]).
     pub fn forward_sweep_pruned(
         &self,
         batch: &SweepBatch,
         keep: usize,
     ) -> CResult<(HeadOutput, Vec<usize>)> {
-        let tx = self.encode_cloud(&batch.model, &batch.model_graph, false)?;
-        let ty = self.encode_cloud(&batch.observed, &batch.observed_graph, false)?;
-        let kept = prune_copies(&tx, &ty, keep)?;
-        let tx = match &kept {
-            Some((idx, _)) => tx.index_select(idx, 0)?.contiguous()?,
-            None => tx,
-        };
-        let side = self.transformer.model_side(&tx)?;
-        let (fx, fy) = self.transformer.forward_model_side(&side, &ty)?;
-        let b = batch.len();
-        Ok((
-            self.head(&fx, &fy)?,
-            kept.map_or_else(|| (0..b).collect(), |(_, k)| k),
-        ))
+        self.forward_sweep_side(&self.sweep_model_side(batch)?, batch, keep)
     }
 
     /// Everything a sweep computes from the model's rotated copies alone (their DGCNN
@@ -364,8 +353,8 @@ impl PoseNet {
     }
 
     /// [`PoseNet::forward_sweep_pruned`] with the model side computed beforehand by
-    /// [`PoseNet::sweep_model_side`] on the same copies; only `batch`'s observed cloud is
-    /// encoded. The same values as `forward_sweep_pruned` (to f32 rounding, tested).
+    /// [`PoseNet::sweep_model_side`] on the same copies (kept, or computed for another
+    /// observed cloud); only `batch`'s observed cloud is encoded.
     pub fn forward_sweep_side(
         &self,
         side: &ModelSide,

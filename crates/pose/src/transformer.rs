@@ -263,16 +263,8 @@ impl Transformer {
         Ok((fx, fy))
     }
 
-    /// [`Transformer::forward`] for `B` model clouds `tx` (`[B, M, d]`) against one observed
-    /// cloud `ty` (`[1, N, d]`), as if `ty` were repeated `B` times, with everything that
-    /// depends on `ty` alone computed once ([`Transformer::forward_model_side`]). Returns
-    /// `(fx [B, M, d], fy [B, N, d])`, the same values as `forward` on the repeated batch.
-    pub fn forward_shared(&self, tx: &Tensor, ty: &Tensor) -> Result<(Tensor, Tensor)> {
-        self.forward_model_side(&self.model_side(tx)?, ty)
-    }
-
-    /// The part of [`Transformer::forward_shared`] that depends on the model clouds `tx`
-    /// (`[B, M, d]`) alone.
+    /// The part of [`Transformer::forward`] that depends on the model clouds `tx`
+    /// (`[B, M, d]`) alone, for [`Transformer::forward_model_side`].
     pub fn model_side(&self, tx: &Tensor) -> Result<ModelSide> {
         let self_attended = self.decoder.self_attention(tx)?;
         let cross_queries = self.decoder.cross_queries(&self_attended)?;
@@ -287,10 +279,13 @@ impl Transformer {
         })
     }
 
-    /// [`Transformer::forward_shared`] from the model side computed apart: everything that
-    /// depends on the observed cloud `ty` (`[1, N, d]`) alone — its encoder memory with that
-    /// memory's keys and values, its decoder self-attention and cross queries — is computed
-    /// once and shared by the `B` copies.
+    /// [`Transformer::forward`] for `B` model clouds, given as their
+    /// [`Transformer::model_side`], against one observed cloud `ty` (`[1, N, d]`), as if `ty`
+    /// were repeated `B` times: everything that depends on `ty` alone — its encoder memory
+    /// with that memory's keys and values, its decoder self-attention and cross queries — is
+    /// computed once and shared by the copies. Returns `(fx [B, M, d], fy [B, N, d])`, the
+    /// same values as `forward` on the repeated batch (tested through
+    /// [`crate::PoseNet::forward_sweep`]).
     pub fn forward_model_side(&self, side: &ModelSide, ty: &Tensor) -> Result<(Tensor, Tensor)> {
         let b = side.copies()?;
         if ty.dim(0)? != 1 {
