@@ -2,12 +2,13 @@
 //! network, hypotheses, ICP and render-and-compare verification, on the demo's scenes (a
 //! procedural object in a procedural room, Kinect-like camera, depth in normalised units).
 //!
-//! - `register_640x480/verified_k24`: the default of `register` (24 rotated copies, the best 8
+//! - `register_640x480/verified_k24`: the default of `register` (the clutter segmentation
+//!   network, and the one-object network when nothing is `ok`; 24 rotated copies, the best 8
 //!   refined and verified);
 //! - `register_640x480/paper_k1`: `--rotations 1`, the paper's single pass;
-//! - `register_640x480/clutter15_verified_k24`: the default of `register` with the clutter
-//!   segmentation network on a table, bin or shelf of 15 procedural objects (metres, sensor
-//!   model on; the target chosen among the instances);
+//! - `register_640x480/clutter15_verified_k24`: the default of `register` on a table, bin or
+//!   shelf of 15 procedural objects (metres, sensor model on; the target chosen among the
+//!   instances);
 //! - `baseline/sum_300k_points`: the in-run baseline that ratios are taken to.
 //!
 //! The object (mesh normalised and sampled) is prepared once, outside the timing, as an
@@ -181,13 +182,14 @@ fn clutter_scene(seed: u64, objects: usize) -> (DepthImage, Intrinsics, Object) 
     (depth, s.intrinsics, object)
 }
 
-/// `register` on tables, bins and shelves of 15 objects with the clutter segmentation
-/// network (two outputs: objects and instance cores), which finds every object so that the
-/// target is chosen among them (up to [`PipelineOptions::instance_tries`] registrations).
+/// `register` with its defaults on tables, bins and shelves of 15 objects: the clutter
+/// segmentation network (two outputs: objects and instance cores) finds every object so that
+/// the target is chosen among them (up to [`PipelineOptions::instance_tries`] registrations),
+/// and the one-object network is asked when none of those is `ok`.
 fn register_clutter(c: &mut Criterion) {
-    let seg = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(CLUTTER_SEG);
     let scenes: Vec<_> = (1..=3).map(|s| clutter_scene(s, 15)).collect();
-    let pipeline = Pipeline::builder().seg_model(&seg).build().unwrap();
+    let pipeline = Pipeline::builder().build().unwrap();
+    assert!(pipeline.seg_one_object_source().is_some());
     let mut group = c.benchmark_group("register_640x480");
     group.sample_size(10);
     bench_scenes(&mut group, "clutter15_verified_k24", &pipeline, &scenes);
@@ -205,9 +207,6 @@ fn register_clutter(c: &mut Criterion) {
         }
     }
 }
-
-/// The clutter segmentation network (relative to this crate).
-const CLUTTER_SEG: &str = "../../models/seg-clutter.safetensors";
 
 criterion_group!(benches, baseline, register, register_clutter);
 criterion_main!(benches);

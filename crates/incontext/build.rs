@@ -8,10 +8,11 @@
 
 use std::path::Path;
 
-const MODELS: [(&str, &str); 3] = [
+const MODELS: [(&str, &str); 4] = [
     ("pose-cpu-softmax.safetensors", "ic_embed_pose_softmax"),
     ("pose-cpu-ot.safetensors", "ic_embed_pose_ot"),
-    ("seg-cpu.safetensors", "ic_embed_seg"),
+    ("seg-clutter.safetensors", "ic_embed_seg"),
+    ("seg-cpu.safetensors", "ic_embed_seg_one_object"),
 ];
 
 fn main() {

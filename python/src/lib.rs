@@ -514,7 +514,8 @@ fn parse_refine(s: &str) -> PyResult<ic_pose::Refine> {
 /// own); `refine`: "icp" or "none"; `threads`: compute threads (None: all logical CPUs);
 /// `seed`: the seed of every random choice (`incontext register --seed`); `rotations`,
 /// `hypotheses`, `verify_top`: as the flags of `incontext register`; `pose_model`,
-/// `seg_model`: checkpoints instead of the shipped networks.
+/// `seg_model`: checkpoints instead of the shipped networks (a `seg_model` is then the only
+/// segmentation network: no one-object second opinion).
 #[pyclass(module = "incontext", frozen)]
 struct Registrar {
     /// Without the segmentation network: used when a mask is given (as the command line).

@@ -93,7 +93,8 @@ pub struct EvalArgs {
     /// A pose checkpoint instead of the shipped one (its head must be the methods' head).
     #[arg(long)]
     pub pose_model: Option<PathBuf>,
-    /// A segmentation checkpoint instead of the shipped one.
+    /// A segmentation checkpoint instead of the shipped ones (it is then the only one: no
+    /// one-object second opinion).
     #[arg(long)]
     pub seg_model: Option<PathBuf>,
     /// Pose hypotheses per registration (1 = the paper's one-shot pipeline; see `register`).

@@ -61,13 +61,25 @@ pub const POSE_OT: Shipped = Shipped {
     bytes: None,
 };
 
-/// The segmentation network (`models/seg-cpu.safetensors`, one object per scene; the clutter
-/// network `models/seg-clutter.safetensors` is loaded with `--seg-model`).
+/// The default segmentation network (`models/seg-clutter.safetensors`): every object of a
+/// cluttered scene, each instance apart.
 pub const SEG: Shipped = Shipped {
-    file: "seg-cpu.safetensors",
+    file: "seg-clutter.safetensors",
     #[cfg(ic_embed_seg)]
-    bytes: Some(include_bytes!("../../../models/seg-cpu.safetensors")),
+    bytes: Some(include_bytes!("../../../models/seg-clutter.safetensors")),
     #[cfg(not(ic_embed_seg))]
+    bytes: None,
+};
+
+/// The one-object segmentation network (`models/seg-cpu.safetensors`, trained on rooms holding
+/// one object): the default pipeline's second opinion when the clutter network's instances
+/// give no `ok` pose — it keeps a lone object of several parts whole, which the clutter network
+/// cuts apart (`docs/decisions.md`, "One network for clutter, one for a lone object").
+pub const SEG_ONE_OBJECT: Shipped = Shipped {
+    file: "seg-cpu.safetensors",
+    #[cfg(ic_embed_seg_one_object)]
+    bytes: Some(include_bytes!("../../../models/seg-cpu.safetensors")),
+    #[cfg(not(ic_embed_seg_one_object))]
     bytes: None,
 };
 
@@ -205,8 +217,21 @@ pub struct LoadedSeg {
     pub source: String,
 }
 
-/// Loads `path`, or the shipped segmentation network when `path` is `None`.
+/// Loads `path`, or the shipped segmentation network ([`SEG`]) when `path` is `None`.
 pub fn load_seg(path: Option<&Path>) -> Result<LoadedSeg> {
+    load_seg_from(path, &SEG)
+}
+
+/// The shipped one-object segmentation network ([`SEG_ONE_OBJECT`]), or `None` when this
+/// build has it neither embedded nor in the workspace.
+pub fn load_seg_one_object() -> Result<Option<LoadedSeg>> {
+    if !SEG_ONE_OBJECT.available() {
+        return Ok(None);
+    }
+    load_seg_from(None, &SEG_ONE_OBJECT).map(Some)
+}
+
+fn load_seg_from(path: Option<&Path>, shipped: &Shipped) -> Result<LoadedSeg> {
     let (file, source) = match path {
         Some(p) => {
             check_readable(p, "segmentation model")?;
@@ -216,8 +241,8 @@ pub fn load_seg(path: Option<&Path>) -> Result<LoadedSeg> {
             )
         }
         None => (
-            shipped_file(&SEG, "segmentation model", "--seg-model")?,
-            SEG.describe(),
+            shipped_file(shipped, "segmentation model", "--seg-model")?,
+            shipped.describe(),
         ),
     };
     // Segmenter::load reads the weights into memory; the file may go afterwards.

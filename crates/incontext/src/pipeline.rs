@@ -639,6 +639,25 @@ fn touches_border(mask: &Mask, frame: (u32, u32, u32, u32)) -> bool {
 pub const MAX_PIECES_PER_INSTANCE: usize = 6;
 pub const MAX_PIECES: usize = 12;
 
+/// The one-object network's instance is not registered again when its mask overlaps one the
+/// main network's tries registered by at least this intersection over union
+/// ([`Pipeline::with_one_object_seg`]).
+pub const SAME_INSTANCE_IOU: f64 = 0.8;
+
+/// Intersection over union of two masks of the same size (0 when both are empty).
+fn mask_iou(a: &Mask, b: &Mask) -> f64 {
+    let (mut both, mut either) = (0usize, 0usize);
+    for (&x, &y) in a.data.iter().zip(&b.data) {
+        both += usize::from(x && y);
+        either += usize::from(x || y);
+    }
+    if either == 0 {
+        0.0
+    } else {
+        both as f64 / either as f64
+    }
+}
+
 /// Touching instances are joined as parts of one object when their depths differ by at most
 /// this fraction of the model's diameter where they meet ([`crate::parts::contacts`]).
 pub const PART_DEPTH_GAP: f64 = 0.5;
@@ -851,6 +870,10 @@ pub struct InstanceChoice {
     pub truncated: bool,
     /// Whether it is a piece cut from a heap ([`InstanceCandidate::cut`]).
     pub cut: bool,
+    /// Whether the one-object network's second opinion ([`Pipeline::with_one_object_seg`])
+    /// chose it (`candidates` and `rank` then count that network's instances) or confirmed
+    /// it as a lone object (the single-object calibration then applies).
+    pub one_object_network: bool,
 }
 
 /// One verified hypothesis of [`Registration::verified`].
@@ -874,13 +897,17 @@ pub const DEFAULT_ROTATIONS: usize = 24;
 pub struct Pipeline {
     pose: LoadedPose,
     seg: Option<LoadedSeg>,
+    /// The one-object network, asked when the instances of `seg` gave no `ok` pose
+    /// ([`Pipeline::with_one_object_seg`]).
+    seg_one_object: Option<LoadedSeg>,
     pub options: PipelineOptions,
     /// The threads registrations run on (`None`: rayon's global pool).
     pool: Option<rayon::ThreadPool>,
 }
 
 /// How to load a [`Pipeline`]: which networks, which settings. The defaults are those of
-/// `incontext register`: the shipped softmax pose network and segmentation network, ICP,
+/// `incontext register`: the shipped softmax pose network, the shipped clutter segmentation
+/// network with the one-object network as its second opinion ([`Pipeline::with_one_object_seg`]), ICP,
 /// [`DEFAULT_ROTATIONS`] rotation hypotheses verified by render-and-compare (the best 8), one
 /// hypothesis per copy, the global thread pool.
 ///
@@ -937,7 +964,8 @@ impl PipelineBuilder {
         self
     }
 
-    /// A segmentation checkpoint instead of the shipped network.
+    /// A segmentation checkpoint instead of the shipped networks (it is then the only one:
+    /// no one-object second opinion).
     pub fn seg_model(mut self, path: impl Into<PathBuf>) -> Self {
         self.seg_model = Some(path.into());
         self
@@ -1039,12 +1067,20 @@ impl PipelineBuilder {
             ),
         };
         let pose = crate::models::load_pose(self.pose_model.as_deref(), self.head)?;
-        let seg = if self.segmentation {
-            Some(crate::models::load_seg(self.seg_model.as_deref())?)
+        let (seg, one_object) = if self.segmentation {
+            let one_object = match self.seg_model {
+                Some(_) => None,
+                None => crate::models::load_seg_one_object()?,
+            };
+            (
+                Some(crate::models::load_seg(self.seg_model.as_deref())?),
+                one_object,
+            )
         } else {
-            None
+            (None, None)
         };
         let mut pipeline = Pipeline::new(pose, seg, self.options);
+        pipeline.seg_one_object = one_object;
         pipeline.pool = pool;
         Ok(pipeline)
     }
@@ -1066,9 +1102,25 @@ impl Pipeline {
         Pipeline {
             pose,
             seg,
+            seg_one_object: None,
             options,
             pool: None,
         }
+    }
+
+    /// Adds a one-object segmentation network (trained on scenes holding one object, e.g.
+    /// [`crate::models::load_seg_one_object`]) as a second opinion: when no instance of the
+    /// main network gives an `ok` pose, its best instance of a fitting size that the main
+    /// network's tries did not already cover is registered too, and its pose is kept when it
+    /// is `ok` (or when the main network gave none). A clutter network cuts a lone object of
+    /// several parts (a mug and its handle, a table and its legs) into instances none of which
+    /// is the object; a one-object network keeps it whole. When the one-object network sees a
+    /// single instance in the image, its pose (or the main network's pose of the same pixels)
+    /// gets the single-object calibration. Costs nothing when the first tries give an `ok`
+    /// pose.
+    pub fn with_one_object_seg(mut self, seg: LoadedSeg) -> Self {
+        self.seg_one_object = Some(seg);
+        self
     }
 
     /// Runs `f` on the pipeline's threads (or the caller's pool).
@@ -1093,6 +1145,12 @@ impl Pipeline {
         self.seg.as_ref().map(|s| s.source.as_str())
     }
 
+    /// Where the one-object second opinion came from, when loaded
+    /// ([`Pipeline::with_one_object_seg`]).
+    pub fn seg_one_object_source(&self) -> Option<&str> {
+        self.seg_one_object.as_ref().map(|s| s.source.as_str())
+    }
+
     /// M and N: the model and observed point counts the pose network was trained with.
     pub fn point_counts(&self) -> (usize, usize) {
         let t = &self.pose.estimator.config().train;
@@ -1115,6 +1173,7 @@ impl Pipeline {
             "pose_model": self.pose.source,
             "head": self.head().as_str(),
             "seg_model": self.seg_source(),
+            "seg_one_object_model": self.seg_one_object_source(),
             "model_points": m,
             "observed_points": n,
             "pipeline": self.options,
@@ -1309,6 +1368,16 @@ impl Pipeline {
         let seg = self.seg.as_ref().ok_or_else(|| {
             PipelineError::input("no segmentation network loaded and no mask given")
         })?;
+        Self::candidates_of(seg, object, depth_n, intrinsics)
+    }
+
+    /// [`Pipeline::instance_candidates`] of the network `seg`.
+    fn candidates_of(
+        seg: &LoadedSeg,
+        object: &Object,
+        depth_n: &DepthImage,
+        intrinsics: &Intrinsics,
+    ) -> Result<Vec<InstanceCandidate>> {
         let post = &seg.segmenter.config().post;
         let found = seg.segmenter.instances(depth_n, intrinsics)?;
         let best_score = found.first().map(|i| i.score);
@@ -1427,7 +1496,15 @@ impl Pipeline {
         search: InstanceSearch,
     ) -> Result<Vec<Registration>> {
         let t = Instant::now();
-        let all_candidates = self.instance_candidates(object, depth_n, intrinsics)?;
+        // With a second opinion, the main network finding nothing that fits is not the end.
+        let (all_candidates, mut first_error) =
+            match self.instance_candidates(object, depth_n, intrinsics) {
+                Ok(c) => (c, None),
+                Err(e @ PipelineError::NotFound(_)) if self.seg_one_object.is_some() => {
+                    (Vec::new(), Some(e))
+                }
+                Err(e) => return Err(e),
+            };
         let seg_seconds = t.elapsed().as_secs_f64();
         let network_instances = all_candidates
             .iter()
@@ -1464,17 +1541,21 @@ impl Pipeline {
             .chain(pieces.iter().take(per_group))
             .copied()
             .collect();
-        if candidates.is_empty() {
+        if candidates.is_empty() && first_error.is_none() {
             let largest = all_candidates
                 .iter()
                 .map(|c| c.size_ratio)
                 .fold(0.0, f64::max);
-            return Err(PipelineError::not_found(format!(
+            let e = PipelineError::not_found(format!(
                 "object not found: the segmentation found {} instance(s), all too small for the model \
                  (the largest spans {:.2} of its diameter, at least {MIN_SIZE_RATIO} is needed); \
                  is the mesh in the depth map's units (--model-unit-mm)?",
                 network_instances, largest
-            )));
+            ));
+            if self.seg_one_object.is_none() {
+                return Err(e);
+            }
+            first_error = Some(e);
         }
         let tries = match search {
             InstanceSearch::FirstOk
@@ -1483,8 +1564,14 @@ impl Pipeline {
             InstanceSearch::Every { limit } => limit,
         };
         let mut done: Vec<Registration> = Vec::new();
-        let mut first_error = None;
-        for (i, c) in candidates.iter().take(tries).enumerate() {
+        // Registers one candidate; false when the search stops there.
+        let register = |c: &InstanceCandidate,
+                        choice: InstanceChoice,
+                        clutter: bool,
+                        seg_seconds: f64,
+                        done: &mut Vec<Registration>,
+                        first_error: &mut Option<PipelineError>|
+         -> Result<bool> {
             let seconds = StageSeconds {
                 segmentation_network: seg_seconds,
                 ..StageSeconds::default()
@@ -1510,32 +1597,109 @@ impl Pipeline {
                     // calibration's (it may be another object). A lone instance keeps the
                     // single-object calibration: the clutter one was fitted on scenes with
                     // several (`docs/decisions.md`).
-                    if let (Some(e), Some(v), true) =
-                        (r.evidence, r.verification, network_instances > 1 || c.cut)
-                    {
+                    if let (Some(e), Some(v), true) = (r.evidence, r.verification, clutter) {
                         r.confidence =
                             clutter_calibration().apply(segmentation_evidence(e, v.agreement));
                         r.verdict = Verdict::of_verified(v.score, r.confidence, &self.options);
                         r.calibration = CalibrationUsed::Segmentation;
                     }
-                    r.instance = Some(InstanceChoice {
-                        rank: i,
-                        candidates: network_instances,
+                    r.instance = Some(choice);
+                    let stop = search == InstanceSearch::FirstOk && r.verdict == Verdict::Ok;
+                    done.push(r);
+                    Ok(!stop)
+                }
+                Err(e @ PipelineError::NotFound(_)) => {
+                    first_error.get_or_insert(e);
+                    Ok(true)
+                }
+                Err(e) => Err(e),
+            }
+        };
+        for (i, c) in candidates.iter().take(tries).enumerate() {
+            let choice = InstanceChoice {
+                rank: i,
+                candidates: network_instances,
+                size_ratio: c.size_ratio,
+                parts: c.parts,
+                truncated: c.truncated,
+                cut: c.cut,
+                one_object_network: false,
+            };
+            let clutter = network_instances > 1 || c.cut;
+            if !register(c, choice, clutter, seg_seconds, &mut done, &mut first_error)? {
+                break;
+            }
+        }
+        // The one-object network's second opinion, when nothing so far is `ok`: its best
+        // instance of a fitting size that the tries above did not already cover.
+        if let (Some(one), false, false) = (
+            &self.seg_one_object,
+            matches!(search, InstanceSearch::Every { .. }),
+            done.iter().any(|r| r.verdict == Verdict::Ok),
+        ) {
+            let t = Instant::now();
+            let others = match Self::candidates_of(one, object, depth_n, intrinsics) {
+                Ok(c) => c,
+                Err(PipelineError::NotFound(_)) => Vec::new(),
+                Err(e) => return Err(e),
+            };
+            let one_seconds = seg_seconds + t.elapsed().as_secs_f64();
+            let tried: Vec<&Mask> = candidates.iter().take(tries).map(|c| &c.mask).collect();
+            // Each network judges how many objects its own instances hold: the one-object
+            // network seeing a single instance in the whole image is a lone object.
+            let its_instances = others.iter().filter(|c| c.parts == 1 && !c.cut).count();
+            let lone = its_instances == 1;
+            let best = others
+                .iter()
+                .find(|c| c.plausible && !c.cut && c.parts == 1);
+            let same = best.and_then(|c| {
+                tried
+                    .iter()
+                    .position(|m| mask_iou(m, &c.mask) >= SAME_INSTANCE_IOU)
+            });
+            match (best, same) {
+                (Some(c), None) => {
+                    let choice = InstanceChoice {
+                        rank: 0,
+                        candidates: its_instances,
                         size_ratio: c.size_ratio,
                         parts: c.parts,
                         truncated: c.truncated,
                         cut: c.cut,
-                    });
-                    let stop = search == InstanceSearch::FirstOk && r.verdict == Verdict::Ok;
-                    done.push(r);
-                    if stop {
-                        break;
+                        one_object_network: true,
+                    };
+                    // Kept when `ok`, or when the main network gave nothing: in clutter the
+                    // one-object network's instances are rarely the object, and an `uncertain`
+                    // pose of its would only push aside the main network's.
+                    let mut second = Vec::new();
+                    register(c, choice, !lone, one_seconds, &mut second, &mut first_error)?;
+                    let nothing_yet = done.is_empty();
+                    done.extend(
+                        second
+                            .into_iter()
+                            .filter(|r| nothing_yet || r.verdict == Verdict::Ok),
+                    );
+                }
+                // Both networks chose these pixels, and the one-object network sees nothing
+                // else: a lone object, whose registration gets the single-object calibration.
+                (Some(_), Some(j)) if lone => {
+                    for r in done.iter_mut().filter(|r| {
+                        r.instance
+                            .is_some_and(|i| i.rank == j && !i.one_object_network)
+                            && r.calibration == CalibrationUsed::Segmentation
+                    }) {
+                        if let (Some(e), Some(v)) = (r.evidence, r.verification) {
+                            r.confidence = verified_calibration().apply(e);
+                            r.verdict = Verdict::of_verified(v.score, r.confidence, &self.options);
+                            r.calibration = CalibrationUsed::Object;
+                            r.seconds.segmentation_network = one_seconds;
+                            if let Some(i) = &mut r.instance {
+                                i.one_object_network = true;
+                            }
+                        }
                     }
                 }
-                Err(e @ PipelineError::NotFound(_)) => {
-                    first_error.get_or_insert(e);
-                }
-                Err(e) => return Err(e),
+                _ => {}
             }
         }
         if done.is_empty() {

@@ -103,7 +103,8 @@ pub struct NetworkArgs {
     /// A pose checkpoint instead of the shipped one.
     #[arg(long)]
     pub pose_model: Option<PathBuf>,
-    /// A segmentation checkpoint instead of the shipped one.
+    /// A segmentation checkpoint instead of the shipped ones (it is then the only one: no
+    /// one-object second opinion; e.g. models/seg-cpu.safetensors for one object per scene).
     #[arg(long)]
     pub seg_model: Option<PathBuf>,
     /// Pose hypotheses (each its own point draw, network run and refinement; the one that

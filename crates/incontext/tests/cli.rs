@@ -634,7 +634,8 @@ fn demo_finds_the_pose_and_register_on_its_files_agrees() {
     // The shipped segmentation network, not the ground-truth mask.
     assert!(
         incontext::models::SEG.available(),
-        "models/seg-cpu.safetensors is missing"
+        "models/{} is missing",
+        incontext::models::SEG.file
     );
     let o = check(&args, 0, &["incontext demo", "\"seed\":3"]);
     let report = json_stdout(&o);

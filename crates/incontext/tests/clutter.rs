@@ -330,3 +330,77 @@ fn eval_frames_judges_each_pose_against_the_depth_without_ground_truth() {
     let empty = tempfile::tempdir().unwrap();
     check(&["eval", "--frames", s(empty.path())], 2, &["no depth PNG"]);
 }
+
+/// The scene of `incontext demo --seed 3` (a procedural object of several parts, alone in the
+/// room, mm) and its true pose.
+fn lone_composite_scene() -> (incontext::Object, ic_geometry::DepthImage, Intrinsics, Pose) {
+    use ic_data::{Corpus, CorpusOptions, ROOM_UNIT_MM, RoomSampleConfig, RoomSampleGenerator};
+    let seed = 3;
+    let options = CorpusOptions {
+        model_points: 16,
+        ..CorpusOptions::default()
+    };
+    let corpus = Arc::new(Corpus::procedural(1, ic_data::Split::Test, seed, options).unwrap());
+    let generator =
+        RoomSampleGenerator::new(corpus.clone(), RoomSampleConfig::default(), seed).unwrap();
+    let view = generator.view_with(&mut CpuRenderer::new(), 0).unwrap();
+    let object = corpus
+        .object(corpus.position(&view.object_id).unwrap())
+        .unwrap();
+    let mm = ROOM_UNIT_MM;
+    let mesh_mm = Mesh {
+        vertices: object
+            .mesh
+            .vertices
+            .iter()
+            .map(|v| *v * mm as f32)
+            .collect(),
+        triangles: object.mesh.triangles.clone(),
+    };
+    let depth_mm = Image {
+        width: view.depth.width,
+        height: view.depth.height,
+        data: view.depth.data.iter().map(|&z| z * mm as f32).collect(),
+    };
+    let truth = ic_geometry::Normalisation {
+        centre: DVec3::ZERO,
+        scale: mm,
+    }
+    .pose_to_original(&view.pose);
+    let object = incontext::Object::from_mesh(mesh_mm, seed).unwrap();
+    (object, depth_mm, view.intrinsics, truth)
+}
+
+#[test]
+fn a_lone_object_the_clutter_network_cuts_into_parts_is_registered_whole_by_the_one_object_network()
+{
+    let (object, depth, intrinsics, truth) = lone_composite_scene();
+    // The clutter network alone cuts the object (a slab on four legs) into parts; the pose
+    // fitted to the best of them (about a third of the object) cannot be trusted.
+    let clutter_only = incontext::Pipeline::builder()
+        .seg_model(incontext::models::SEG.workspace_path())
+        .threads(2)
+        .build()
+        .unwrap();
+    assert!(clutter_only.seg_one_object_source().is_none());
+    let r = clutter_only
+        .register_depth(&object, &depth, &intrinsics, None, 3)
+        .unwrap();
+    assert_ne!(r.verdict, incontext::Verdict::Ok, "{:?}", r.instance);
+    assert!(r.instance.unwrap().size_ratio < 0.64, "{:?}", r.instance);
+    // The default pipeline asks the one-object network when nothing was `ok`: the whole
+    // object, the right pose, trusted.
+    let default = incontext::Pipeline::builder().threads(2).build().unwrap();
+    assert!(default.seg_one_object_source().is_some());
+    let r = default
+        .register_depth(&object, &depth, &intrinsics, None, 3)
+        .unwrap();
+    assert_eq!(r.verdict, incontext::Verdict::Ok, "{:?}", r.instance);
+    assert!(r.instance.unwrap().one_object_network, "{:?}", r.instance);
+    assert!(
+        r.pose.rotation_angle_to(&truth).to_degrees() < 2.0,
+        "{:?}",
+        r.pose
+    );
+    assert!((r.pose.translation - truth.translation).length() < 5.0); // mm
+}
