@@ -66,6 +66,36 @@ impl BatchNorm1 {
 }
 
 impl BatchNorm1 {
+    /// The inference-mode normalisation as a per-channel affine map `y = scale·x + shift`
+    /// (running statistics): what [`Self::forward_t`] computes with `train` false, for folding
+    /// into a preceding linear layer.
+    pub fn inference_affine(&self) -> Result<(Vec<f32>, Vec<f32>)> {
+        let w = self.weight.to_dtype(DType::F32)?.to_vec1::<f32>()?;
+        let b = self.bias.to_dtype(DType::F32)?.to_vec1::<f32>()?;
+        let rm = self
+            .running_mean
+            .as_detached_tensor()
+            .to_dtype(DType::F32)?
+            .to_vec1::<f32>()?;
+        let rv = self
+            .running_var
+            .as_detached_tensor()
+            .to_dtype(DType::F32)?
+            .to_vec1::<f32>()?;
+        let scale: Vec<f32> = w
+            .iter()
+            .zip(&rv)
+            .map(|(w, v)| w / (v + self.eps as f32).sqrt())
+            .collect();
+        let shift = b
+            .iter()
+            .zip(&rm)
+            .zip(&scale)
+            .map(|((b, m), s)| b - m * s)
+            .collect();
+        Ok((scale, shift))
+    }
+
     /// `LeakyReLU(BN(x))` with negative slope `slope` (> 0): the same function as
     /// [`Self::forward_t`] followed by `max(y, slope·y)`, and the same running-statistics update.
     ///
@@ -122,6 +152,11 @@ pub struct BatchNorm2(BatchNorm1);
 impl BatchNorm2 {
     pub fn new(vb: VarBuilder, channels: usize, momentum: f64) -> Result<Self> {
         Ok(BatchNorm2(BatchNorm1::new(vb, channels, momentum)?))
+    }
+
+    /// [`BatchNorm1::inference_affine`]: per-channel `(scale, shift)` of inference mode.
+    pub fn inference_affine(&self) -> Result<(Vec<f32>, Vec<f32>)> {
+        self.0.inference_affine()
     }
 
     pub fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {

@@ -4,6 +4,8 @@
 //!   [`input`]) giving one object logit per pixel; it stands in for the paper's YOLACT, which
 //!   needs ImageNet weights that cannot be fetched here (`docs/ARCHITECTURE.md` says how the
 //!   two differ).
+//! - [`infer::FoldedUNet`]: the same network for inference on the CPU, batch norms folded
+//!   into the convolutions, im2col + GEMM on strips of the image (what [`Segmenter`] runs).
 //! - [`post`]: the paper's post-processing — threshold, 8-connected components scored by
 //!   their mean probability, the best instance, 3×3 erosion, back-projection, the crop to
 //!   1.2 normalised units around the masked points' centre.
@@ -47,6 +49,7 @@ pub mod checkpoint;
 pub mod config;
 mod error;
 pub mod geometric;
+pub mod infer;
 pub mod input;
 pub mod post;
 pub mod segmenter;

@@ -17,8 +17,8 @@ use crate::input::INPUT_CHANNELS;
 /// A 2-D convolution with seeded Kaiming-uniform weights (`bound = √(6 / fan_in)`), stride 1.
 #[derive(Clone, Debug)]
 pub struct Conv2d {
-    weight: Tensor,
-    bias: Option<Tensor>,
+    pub(crate) weight: Tensor,
+    pub(crate) bias: Option<Tensor>,
     padding: usize,
 }
 
@@ -108,9 +108,9 @@ pub fn upsample2(x: &Tensor) -> Result<Tensor> {
 
 /// 3×3 convolution → batch norm → ReLU.
 #[derive(Clone, Debug)]
-struct ConvBnRelu {
-    conv: Conv2d,
-    bn: BatchNorm2,
+pub(crate) struct ConvBnRelu {
+    pub(crate) conv: Conv2d,
+    pub(crate) bn: BatchNorm2,
 }
 
 impl ConvBnRelu {
@@ -128,7 +128,7 @@ impl ConvBnRelu {
 
 /// Two [`ConvBnRelu`] blocks.
 #[derive(Clone, Debug)]
-struct DoubleConv(ConvBnRelu, ConvBnRelu);
+pub(crate) struct DoubleConv(pub(crate) ConvBnRelu, pub(crate) ConvBnRelu);
 
 impl DoubleConv {
     fn new(vb: VarBuilder, cin: usize, cout: usize, momentum: f64) -> Result<Self> {
@@ -147,9 +147,9 @@ impl DoubleConv {
 /// (object, then instance core when `outputs` = 2).
 #[derive(Clone, Debug)]
 pub struct UNet {
-    down: Vec<DoubleConv>,
-    up: Vec<DoubleConv>,
-    head: Conv2d,
+    pub(crate) down: Vec<DoubleConv>,
+    pub(crate) up: Vec<DoubleConv>,
+    pub(crate) head: Conv2d,
     cfg: UNetConfig,
 }
 

@@ -1,0 +1,370 @@
+//! The U-Net's inference on the CPU without candle's tensor ops: batch norm folded into the
+//! convolutions, each 3×3 convolution as im2col + GEMM on horizontal strips of the image (so
+//! the unfolded columns stay in cache), bias and ReLU applied in place.
+//!
+//! The same function as [`UNet::forward_t`] with `train` false (its oracle test:
+//! `folded_inference_matches_the_tensor_forward`), for one image at a time. The tensor form
+//! allocates and traverses a full-image tensor per op (padding, nine shifted copies, their
+//! stack, the product, the batch norm's multiply and add, the ReLU, the concatenation); at the
+//! clutter preset's 256×192 input that made the network take about five times the time of the
+//! `cpu` preset's 160×120 for 2.6 times the pixels.
+
+use candle_core::Result;
+use ic_nn::ops::fastmath::matmul;
+use ic_nn::ops::{MatMut, MatRef};
+use rayon::prelude::*;
+
+use crate::unet::{Conv2d, ConvBnRelu, UNet};
+
+/// Unfolded input values (channels × 9 × strip pixels) per strip, at most: about 1 MB of f32.
+const STRIP_VALUES: usize = 1 << 18;
+
+/// One convolution with its batch norm folded in: `y = W·x + b`, then ReLU when `relu`.
+struct Folded {
+    /// `[out, in·k·k]`, row-major (the im2col order: channel, then kernel row, then column).
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+    inputs: usize,
+    outputs: usize,
+    kernel: usize,
+    relu: bool,
+}
+
+impl Folded {
+    fn conv(conv: &Conv2d, affine: Option<(Vec<f32>, Vec<f32>)>, relu: bool) -> Result<Self> {
+        let (o, c, kh, kw) = conv.weight.dims4()?;
+        debug_assert_eq!(kh, kw);
+        let mut weight = conv.weight.flatten_all()?.to_vec1::<f32>()?;
+        let mut bias = match &conv.bias {
+            Some(b) => b.to_vec1::<f32>()?,
+            None => vec![0.0; o],
+        };
+        if let Some((scale, shift)) = affine {
+            let row = c * kh * kw;
+            for j in 0..o {
+                weight[j * row..(j + 1) * row]
+                    .iter_mut()
+                    .for_each(|w| *w *= scale[j]);
+                bias[j] = bias[j] * scale[j] + shift[j];
+            }
+        }
+        Ok(Folded {
+            weight,
+            bias,
+            inputs: c,
+            outputs: o,
+            kernel: kh,
+            relu,
+        })
+    }
+
+    fn conv_bn_relu(block: &ConvBnRelu) -> Result<Self> {
+        Self::conv(&block.conv, Some(block.bn.inference_affine()?), true)
+    }
+
+    /// `x`: `[inputs, h, w]` → `[outputs, h, w]` ("same" zero padding).
+    fn forward(&self, x: &[f32], h: usize, w: usize) -> Vec<f32> {
+        let (c, o, k) = (self.inputs, self.outputs, self.kernel);
+        debug_assert_eq!(x.len(), c * h * w);
+        let ck = c * k * k;
+        let weight = MatRef::new(&self.weight, o, ck, ck);
+        let rows_per_strip = (STRIP_VALUES / (ck * w).max(1)).clamp(1, h);
+        let strips: Vec<(usize, Vec<f32>)> = (0..h)
+            .step_by(rows_per_strip)
+            .collect::<Vec<_>>()
+            .into_par_iter()
+            .map(|y0| {
+                let y1 = (y0 + rows_per_strip).min(h);
+                let n = (y1 - y0) * w;
+                let mut out = vec![0.0f32; o * n];
+                if k == 1 {
+                    // The strip's pixels of every channel: a strided view of x.
+                    let cols = MatRef::strided(&x[y0 * w..], c, n, h * w, 1);
+                    matmul(weight, cols, MatMut::new(&mut out, o, n, n), false);
+                } else {
+                    let cols = unfold(x, c, h, w, k, y0, y1);
+                    matmul(
+                        weight,
+                        MatRef::new(&cols, ck, n, n),
+                        MatMut::new(&mut out, o, n, n),
+                        false,
+                    );
+                }
+                for (j, row) in out.chunks_mut(n).enumerate() {
+                    let b = self.bias[j];
+                    if self.relu {
+                        row.iter_mut().for_each(|v| *v = (*v + b).max(0.0));
+                    } else {
+                        row.iter_mut().for_each(|v| *v += b);
+                    }
+                }
+                (y0, out)
+            })
+            .collect();
+        let mut y = vec![0.0f32; o * h * w];
+        for (y0, out) in strips {
+            let n = out.len() / o;
+            for j in 0..o {
+                y[j * h * w + y0 * w..j * h * w + y0 * w + n]
+                    .copy_from_slice(&out[j * n..(j + 1) * n]);
+            }
+        }
+        y
+    }
+}
+
+/// The im2col columns of rows `y0..y1` of `x` (`[c, h, w]`) for a `k`×`k` kernel with zero
+/// padding `k / 2`: `[c·k·k, (y1 − y0)·w]`, row `(ch·k + dy)·k + dx` holding
+/// `x[ch][y + dy − k/2][x + dx − k/2]` (0 outside the image).
+fn unfold(x: &[f32], c: usize, h: usize, w: usize, k: usize, y0: usize, y1: usize) -> Vec<f32> {
+    let n = (y1 - y0) * w;
+    let p = k / 2;
+    let mut cols = vec![0.0f32; c * k * k * n];
+    for ch in 0..c {
+        let plane = &x[ch * h * w..(ch + 1) * h * w];
+        for dy in 0..k {
+            for dx in 0..k {
+                let row = &mut cols[((ch * k + dy) * k + dx) * n..][..n];
+                for y in y0..y1 {
+                    let sy = y as isize + dy as isize - p as isize;
+                    if sy < 0 || sy >= h as isize {
+                        continue;
+                    }
+                    let src = &plane[sy as usize * w..(sy as usize + 1) * w];
+                    let dst = &mut row[(y - y0) * w..(y - y0 + 1) * w];
+                    // dst[x] = src[x + dx − p] where that lies inside the row.
+                    let shift = dx as isize - p as isize;
+                    let (from, to) = if shift < 0 {
+                        (0usize, (shift.unsigned_abs()))
+                    } else {
+                        (shift as usize, 0usize)
+                    };
+                    let len = w - from.max(to);
+                    dst[to..to + len].copy_from_slice(&src[from..from + len]);
+                }
+            }
+        }
+    }
+    cols
+}
+
+/// 2×2 max pooling, stride 2: `[c, h, w]` → `[c, h/2, w/2]` (h and w even).
+fn max_pool2(x: &[f32], c: usize, h: usize, w: usize) -> Vec<f32> {
+    let (h2, w2) = (h / 2, w / 2);
+    let mut y = vec![0.0f32; c * h2 * w2];
+    for ch in 0..c {
+        let plane = &x[ch * h * w..(ch + 1) * h * w];
+        for yy in 0..h2 {
+            let a = &plane[2 * yy * w..(2 * yy + 1) * w];
+            let b = &plane[(2 * yy + 1) * w..(2 * yy + 2) * w];
+            let out = &mut y[(ch * h2 + yy) * w2..(ch * h2 + yy + 1) * w2];
+            for (xx, v) in out.iter_mut().enumerate() {
+                *v = a[2 * xx]
+                    .max(a[2 * xx + 1])
+                    .max(b[2 * xx])
+                    .max(b[2 * xx + 1]);
+            }
+        }
+    }
+    y
+}
+
+/// `[2x upsampled coarse (cc channels), skip (sc channels)]` at the skip's `h`×`w`.
+fn upsample_concat(coarse: &[f32], cc: usize, skip: &[f32], h: usize, w: usize) -> Vec<f32> {
+    let (h2, w2) = (h / 2, w / 2);
+    let mut y = Vec::with_capacity(cc * h * w + skip.len());
+    for ch in 0..cc {
+        let plane = &coarse[ch * h2 * w2..(ch + 1) * h2 * w2];
+        for yy in 0..h {
+            let src = &plane[(yy / 2) * w2..(yy / 2 + 1) * w2];
+            y.extend(src.iter().flat_map(|&v| [v, v]));
+        }
+    }
+    y.extend_from_slice(skip);
+    y
+}
+
+/// A [`UNet`] with its weights copied and batch norms folded, for inference.
+pub struct FoldedUNet {
+    down: Vec<(Folded, Folded)>,
+    up: Vec<(Folded, Folded)>,
+    head: Folded,
+}
+
+impl FoldedUNet {
+    /// Copies `net`'s current weights and running statistics.
+    pub fn new(net: &UNet) -> Result<Self> {
+        let pair = |d: &crate::unet::DoubleConv| -> Result<(Folded, Folded)> {
+            Ok((Folded::conv_bn_relu(&d.0)?, Folded::conv_bn_relu(&d.1)?))
+        };
+        Ok(FoldedUNet {
+            down: net.down.iter().map(pair).collect::<Result<_>>()?,
+            up: net.up.iter().map(pair).collect::<Result<_>>()?,
+            head: Folded::conv(&net.head, None, false)?,
+        })
+    }
+
+    /// Logits `[outputs, h, w]` of one input `[2, h, w]` (see [`crate::input`]); `h` and `w`
+    /// must be divisible by 2^(levels − 1), as for [`UNet::forward_t`].
+    pub fn forward(&self, input: &[f32], h: usize, w: usize) -> Result<Vec<f32>> {
+        let levels = self.down.len();
+        let step = 1usize << levels.saturating_sub(1);
+        let inputs = self.down.first().map_or(0, |d| d.0.inputs);
+        if h % step != 0 || w % step != 0 || input.len() != inputs * h * w {
+            candle_core::bail!(
+                "the U-Net's input must be [{inputs}, H, W] with H and W divisible by {step}, got {} values for {h}×{w}",
+                input.len()
+            );
+        }
+        let mut skips: Vec<(Vec<f32>, usize, usize, usize)> = Vec::with_capacity(levels);
+        let (mut x, mut c, mut hh, mut ww) = (input.to_vec(), inputs, h, w);
+        for (l, (a, b)) in self.down.iter().enumerate() {
+            if l > 0 {
+                x = max_pool2(&x, c, hh, ww);
+                hh /= 2;
+                ww /= 2;
+            }
+            x = b.forward(&a.forward(&x, hh, ww), hh, ww);
+            c = b.outputs;
+            skips.push((x.clone(), c, hh, ww));
+        }
+        let (mut x, mut c, _, _) = skips.pop().expect("at least one level");
+        for (a, b) in &self.up {
+            let (skip, _, sh, sw) = skips.pop().expect("one skip per decoder level");
+            let cat = upsample_concat(&x, c, &skip, sh, sw);
+            x = b.forward(&a.forward(&cat, sh, sw), sh, sw);
+            c = b.outputs;
+            (hh, ww) = (sh, sw);
+        }
+        Ok(self.head.forward(&x, hh, ww))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use candle_core::{DType, Device, Tensor};
+    use candle_nn::{VarBuilder, VarMap};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    use super::*;
+    use crate::config::UNetConfig;
+
+    /// A U-Net with every weight, bias and running statistic drawn at random (variances
+    /// positive), so that folding the batch norms is exercised in full.
+    fn random_unet(channels: Vec<usize>, outputs: usize, seed: u64) -> UNet {
+        let cfg = UNetConfig {
+            input_width: 40,
+            input_height: 24,
+            channels,
+            bn_momentum: 0.1,
+            outputs,
+        };
+        let map = VarMap::new();
+        let net = UNet::new(
+            VarBuilder::from_varmap(&map, DType::F32, &Device::Cpu),
+            &cfg,
+        )
+        .unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        for (name, var) in map.data().lock().unwrap().iter() {
+            let n = var.elem_count();
+            let values: Vec<f32> = (0..n)
+                .map(|_| {
+                    let u: f32 = rng.random_range(-1.0..1.0);
+                    if name.ends_with("running_var") {
+                        0.2 + u.abs()
+                    } else {
+                        u * 0.5
+                    }
+                })
+                .collect();
+            var.set(&Tensor::from_vec(values, var.shape(), &Device::Cpu).unwrap())
+                .unwrap();
+        }
+        net
+    }
+
+    #[test]
+    fn folded_inference_matches_the_tensor_forward() {
+        for (channels, outputs, (h, w)) in [
+            (vec![8, 16, 32, 64], 2, (24usize, 40usize)),
+            (vec![4, 8], 1, (10, 6)),
+            (vec![3], 2, (5, 7)),
+        ] {
+            let net = random_unet(channels.clone(), outputs, 7);
+            let mut rng = ChaCha8Rng::seed_from_u64(11);
+            let input: Vec<f32> = (0..2 * h * w)
+                .map(|_| rng.random_range(-1.0..1.0))
+                .collect();
+            let x = Tensor::from_vec(input.clone(), (1, 2, h, w), &Device::Cpu).unwrap();
+            let want = net
+                .forward_t(&x, false)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap();
+            let got = FoldedUNet::new(&net)
+                .unwrap()
+                .forward(&input, h, w)
+                .unwrap();
+            assert_eq!(got.len(), want.len());
+            let scale = want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            let worst = got
+                .iter()
+                .zip(&want)
+                .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            assert!(
+                worst <= 1e-4 * scale.max(1.0),
+                "{channels:?}: worst difference {worst} (largest logit {scale})"
+            );
+        }
+    }
+
+    #[test]
+    fn strips_of_one_row_give_the_whole_image_convolution() {
+        // A wide layer forces one row per strip; the result must not depend on the split.
+        let net = random_unet(vec![8], 1, 3);
+        let folded = FoldedUNet::new(&net).unwrap();
+        let conv = &folded.down[0].1;
+        let (h, w) = (9usize, 8192usize);
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let x: Vec<f32> = (0..8 * h * w)
+            .map(|_| rng.random_range(-1.0..1.0))
+            .collect();
+        assert_eq!((STRIP_VALUES / (8 * 9 * w)).clamp(1, h), 1);
+        let got = conv.forward(&x, h, w);
+        let cols = unfold(&x, 8, h, w, 3, 0, h);
+        let mut want = vec![0.0f32; 8 * h * w];
+        for j in 0..8 {
+            for p in 0..h * w {
+                let s: f32 = (0..72)
+                    .map(|r| conv.weight[j * 72 + r] * cols[r * h * w + p])
+                    .sum();
+                want[j * h * w + p] = (s + conv.bias[j]).max(0.0);
+            }
+        }
+        let worst = got
+            .iter()
+            .zip(&want)
+            .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        assert!(worst < 1e-4, "worst difference {worst}");
+        // The 1×1 head (no unfolding): strips of 4 rows.
+        let head = &folded.head;
+        assert_eq!((STRIP_VALUES / (8 * w)).clamp(1, h), 4);
+        let got = head.forward(&x, h, w);
+        for p in 0..h * w {
+            let s: f32 = (0..8).map(|c| head.weight[c] * x[c * h * w + p]).sum();
+            assert!((got[p] - (s + head.bias[0])).abs() < 1e-4, "pixel {p}");
+        }
+    }
+
+    #[test]
+    fn an_input_not_divisible_by_the_levels_is_an_error_not_a_panic() {
+        let net = random_unet(vec![4, 8, 16], 1, 1);
+        let folded = FoldedUNet::new(&net).unwrap();
+        assert!(folded.forward(&vec![0.0; 2 * 10 * 6], 10, 6).is_err());
+        assert!(folded.forward(&vec![0.0; 5], 8, 8).is_err());
+    }
+}
