@@ -365,6 +365,6 @@ mod tests {
         let net = random_unet(vec![4, 8, 16], 1, 1);
         let folded = FoldedUNet::new(&net).unwrap();
         assert!(folded.forward(&vec![0.0; 2 * 10 * 6], 10, 6).is_err());
-        assert!(folded.forward(&vec![0.0; 5], 8, 8).is_err());
+        assert!(folded.forward(&[0.0; 5], 8, 8).is_err());
     }
 }
