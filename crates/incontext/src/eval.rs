@@ -122,6 +122,9 @@ pub struct EvalArgs {
     /// methods (see `register`); default: the pipeline's.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4))]
     pub network_passes: Option<u32>,
+    /// Hypotheses the second network pass takes (see `register`); default: the pipeline's.
+    #[arg(long)]
+    pub pass_top: Option<usize>,
 }
 
 impl EvalArgs {
@@ -142,6 +145,7 @@ impl EvalArgs {
             network_passes: self
                 .network_passes
                 .map_or(PipelineOptions::default().network_passes, |p| p as usize),
+            pass_top: self.pass_top.unwrap_or(PipelineOptions::default().pass_top),
             ..PipelineOptions::default()
         }
     }

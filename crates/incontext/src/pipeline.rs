@@ -499,12 +499,18 @@ pub struct PipelineOptions {
     /// and those whose features best match the observed ones); 0 = all.
     pub sweep_keep: usize,
     /// Passes of the network when hypotheses are verified: 1 = the sweep's pass only; each
-    /// further pass registers, for each of the previous pass's `verify_top` hypotheses, a
-    /// copy of the model turned so that the hypothesis's rotation sits at the centre of the
-    /// rotations the network was trained on, and adds that pass's pose as one more verified
-    /// hypothesis (the network alone, no ICP). The originals stay: a pass can turn a right
-    /// pose into a near-symmetric wrong one (`docs/decisions.md`).
+    /// further pass registers, for each of the previous pass's hypotheses (the first
+    /// `pass_top` of the `verify_top`), a copy of the model turned so that the hypothesis's
+    /// rotation sits at the centre of the rotations the network was trained on, and adds that
+    /// pass's pose as one more verified hypothesis. The originals stay: a pass can turn a
+    /// right pose into a near-symmetric wrong one (`docs/decisions.md`, "More passes of the
+    /// network"). With the segmentation network, only the best-ranked instance gets the
+    /// further passes (the others one): `register` may try several. Default 3.
     pub network_passes: usize,
+    /// How many hypotheses the second pass of the network takes (the best by the
+    /// point-distance ranking; each later pass takes the previous pass's); 0 = all
+    /// `verify_top`.
+    pub pass_top: usize,
     /// With the segmentation network: how many of its instances (ranked by how well their
     /// size fits the model, [`InstanceCandidate`]) are registered before giving up; the first
     /// whose verdict is `ok` ends the search, otherwise the best verified one wins.
@@ -536,7 +542,8 @@ impl Default for PipelineOptions {
             sweep_points: 320,
             sampled_hypotheses: 2,
             sweep_keep: 0,
-            network_passes: 1,
+            network_passes: 3,
+            pass_top: 0,
             instance_tries: 3,
             all_min_confidence: None,
         }
@@ -1028,6 +1035,12 @@ impl PipelineBuilder {
         self
     }
 
+    /// Hypotheses the second pass takes ([`PipelineOptions::pass_top`]; 0 = all verified).
+    pub fn pass_top(mut self, pass_top: usize) -> Self {
+        self.options.pass_top = pass_top;
+        self
+    }
+
     /// `register --all` also returns `uncertain` instances of at least this confidence
     /// ([`PipelineOptions::all_min_confidence`]).
     pub fn all_min_confidence(mut self, confidence: f64) -> Self {
@@ -1253,6 +1266,7 @@ impl Pipeline {
                 m.clone(),
                 summary,
                 seed,
+                self.options.network_passes,
                 seconds,
                 clock,
             );
@@ -1568,6 +1582,7 @@ impl Pipeline {
         let register = |c: &InstanceCandidate,
                         choice: InstanceChoice,
                         clutter: bool,
+                        passes: usize,
                         seg_seconds: f64,
                         done: &mut Vec<Registration>,
                         first_error: &mut Option<PipelineError>|
@@ -1588,6 +1603,7 @@ impl Pipeline {
                 c.mask.clone(),
                 summary,
                 seed,
+                passes,
                 seconds,
                 clock,
             ) {
@@ -1626,7 +1642,22 @@ impl Pipeline {
                 one_object_network: false,
             };
             let clutter = network_instances > 1 || c.cut;
-            if !register(c, choice, clutter, seg_seconds, &mut done, &mut first_error)? {
+            // The further network passes go to the best-ranked instance only: in clutter
+            // `register` may try several, each pass costs a sweep of new model copies.
+            let passes = if i == 0 {
+                self.options.network_passes
+            } else {
+                1
+            };
+            if !register(
+                c,
+                choice,
+                clutter,
+                passes,
+                seg_seconds,
+                &mut done,
+                &mut first_error,
+            )? {
                 break;
             }
         }
@@ -1672,7 +1703,15 @@ impl Pipeline {
                     // one-object network's instances are rarely the object, and an `uncertain`
                     // pose of its would only push aside the main network's.
                     let mut second = Vec::new();
-                    register(c, choice, !lone, one_seconds, &mut second, &mut first_error)?;
+                    register(
+                        c,
+                        choice,
+                        !lone,
+                        self.options.network_passes,
+                        one_seconds,
+                        &mut second,
+                        &mut first_error,
+                    )?;
                     let nothing_yet = done.is_empty();
                     done.extend(
                         second
@@ -1777,6 +1816,7 @@ impl Pipeline {
         mask: Mask,
         summary: SegmentationSummary,
         seed: u64,
+        passes: usize,
         mut seconds: StageSeconds,
         clock: Instant,
     ) -> Result<Registration> {
@@ -1805,8 +1845,15 @@ impl Pipeline {
         } else {
             None
         };
-        let mut r =
-            self.register_observed(object, voxels, observation.as_ref(), seed, seconds, clock)?;
+        let mut r = self.register_observed(
+            object,
+            voxels,
+            observation.as_ref(),
+            seed,
+            passes,
+            seconds,
+            clock,
+        )?;
         r.object_points = points.len();
         r.segmentation = Some(summary);
         r.mask = Some(mask);
@@ -1852,6 +1899,7 @@ impl Pipeline {
             observed.to_vec(),
             observation.as_ref(),
             seed,
+            self.options.network_passes,
             StageSeconds::default(),
             clock,
         )?;
@@ -1865,11 +1913,12 @@ impl Pipeline {
         voxels: Vec<Vec3>,
         observation: Option<&crate::verify::Observation>,
         seed: u64,
+        passes: usize,
         mut seconds: StageSeconds,
         clock: Instant,
     ) -> Result<Registration> {
         if let (Some(obs), true) = (observation, self.options.rotations > 1) {
-            return self.register_verified(object, voxels, obs, seed, seconds, clock);
+            return self.register_verified(object, voxels, obs, seed, passes, seconds, clock);
         }
         let mut best: Option<(f64, Hypothesis)> = None;
         let target = self.icp_target(object, &mut seconds)?;
@@ -1943,6 +1992,7 @@ impl Pipeline {
         voxels: Vec<Vec3>,
         observation: &crate::verify::Observation,
         seed: u64,
+        passes: usize,
         mut seconds: StageSeconds,
         clock: Instant,
     ) -> Result<Registration> {
@@ -2017,11 +2067,15 @@ impl Pipeline {
         let mut top = self.options.verify_top.max(1).min(candidates.len());
         if let Some((x, y)) = &first_draw {
             let t = Instant::now();
-            let mut from = 0;
-            for _ in 1..self.options.network_passes.max(1) {
-                let passed = self.network_pass(x, y, &candidates[from..top])?;
+            let (mut from, mut to) = match self.options.pass_top {
+                0 => (0, top),
+                p => (0, p.min(top)),
+            };
+            for _ in 1..passes.max(1) {
+                let passed = self.network_pass(x, y, &candidates[from..to])?;
                 from = top;
-                top += passed.len();
+                to = top + passed.len();
+                top = to;
                 candidates.splice(from..from, passed);
             }
             seconds.pose_network += t.elapsed().as_secs_f64();

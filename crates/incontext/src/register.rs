@@ -133,10 +133,16 @@ pub struct NetworkArgs {
     pub sampled_hypotheses: usize,
     /// With --rotations: passes of the network over each verified hypothesis. Each pass after
     /// the first registers a copy of the model turned by the hypothesis's rotation, where the
-    /// network is most precise, before ICP and verification.
+    /// network is most precise, before ICP and verification (among several instances, only
+    /// the best-ranked one gets them). 1 = the sweep alone (faster).
     #[arg(long, default_value_t = PipelineOptions::default().network_passes as u32,
           value_parser = clap::value_parser!(u32).range(1..=4))]
     pub network_passes: u32,
+    /// With --network-passes above 1: how many hypotheses (the best by the point-distance
+    /// ranking) the second pass takes; each later pass takes the previous pass's. 0 = all
+    /// --verify-top.
+    #[arg(long, default_value_t = PipelineOptions::default().pass_top)]
+    pub pass_top: usize,
 }
 
 pub fn parse_rotations(s: &str) -> std::result::Result<usize, String> {
@@ -183,7 +189,8 @@ impl NetworkArgs {
             .verify_top(self.verify_top as usize)
             .sweep_keep(self.sweep_keep)
             .sampled_hypotheses(self.sampled_hypotheses)
-            .network_passes(self.network_passes as usize);
+            .network_passes(self.network_passes as usize)
+            .pass_top(self.pass_top);
         if let Some(head) = self.head {
             b = b.head(head);
         }

@@ -29,9 +29,12 @@ fn rotation_hypotheses_find_the_pose_verify_it_and_repeat_exactly() {
     let (code, a, err) = register_json(&sc, &["--rotations", "24", "--mask", &sc.p("mask.png")]);
     assert_eq!(code, Some(0), "{err}");
     assert_eq!(a["verdict"], "ok");
-    // 24 rotated copies' weighted-Procrustes poses and up to 2 sampled poses each.
+    // 24 rotated copies' weighted-Procrustes poses and up to 2 sampled poses each, then
+    // two further passes of the network over the 8 verified ones (8 more each).
     let made = a["details"]["hypotheses_made"].as_u64().unwrap();
-    assert!((24..=72).contains(&made), "{made}");
+    assert!((24 + 16..=72 + 16).contains(&made), "{made}");
+    let checked = a["details"]["hypotheses_verified"].as_u64().unwrap();
+    assert_eq!(checked, 8 + 16, "{a:#}");
     let v = &a["details"]["verification"];
     assert!(v["score"].as_f64().unwrap() > 0.8, "{v}");
     // The confidence is the calibrated probability of being right: `ok` needs at least 0.9.
