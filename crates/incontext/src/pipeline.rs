@@ -720,7 +720,7 @@ impl InstanceCandidate {
         )
     }
 
-    /// Sorts `candidates` best first by [`InstanceCandidate::rank_key`].
+    /// Sorts `candidates` best first (fitting size, then pixels, then score; see the fields).
     pub fn rank(candidates: &mut [InstanceCandidate]) {
         candidates.sort_by(|a, b| {
             let (ka, kb) = (a.rank_key(), b.rank_key());
@@ -1907,6 +1907,7 @@ impl Pipeline {
         Ok(r)
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn register_observed(
         &self,
         object: &Object,
@@ -1986,6 +1987,7 @@ impl Pipeline {
     /// batch per draw); the one-shot poses are ranked by the point-distance confidence, the
     /// best `verify_top` are refined by ICP and scored by render-and-compare against
     /// `observation`; the best score wins.
+    #[allow(clippy::too_many_arguments)]
     fn register_verified(
         &self,
         object: &Object,
