@@ -720,7 +720,11 @@ impl InstanceCandidate {
         )
     }
 
-    /// Sorts `candidates` best first (fitting size, then pixels, then score; see the fields).
+    /// Sorts `candidates` best first: plausible ones first, the network's instances (and
+    /// joined parts) before pieces cut from heaps, then those within [`CLOSE_SIZE_FACTOR`] of
+    /// [`TYPICAL_SIZE_RATIO`] (whole in the image before cut off by its border, instances
+    /// before joined parts, most pixels first), then the rest by the size ratio nearest it,
+    /// then the segmentation score.
     pub fn rank(candidates: &mut [InstanceCandidate]) {
         candidates.sort_by(|a, b| {
             let (ka, kb) = (a.rank_key(), b.rank_key());
