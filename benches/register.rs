@@ -21,12 +21,8 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use ic_data::{
-    ClutterConfig, ClutterGenerator, Corpus, CorpusOptions, RoomSampleConfig, RoomSampleGenerator,
-    Split,
-};
+use ic_data::{ClutterConfig, ClutterGenerator, Corpus, CorpusOptions, Split};
 use ic_geometry::{DepthImage, Intrinsics};
-use ic_render::CpuRenderer;
 use incontext::{Object, Pipeline, PipelineOptions, StageSeconds};
 use std::sync::Arc;
 
@@ -36,19 +32,9 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 /// The demo's scenes `seed` (`incontext demo --seed S`): depth (normalised units), camera and
 /// the prepared object.
 fn scene(seed: u64) -> (DepthImage, Intrinsics, Object) {
-    let options = CorpusOptions {
-        model_points: 16,
-        ..CorpusOptions::default()
-    };
-    let corpus = Arc::new(Corpus::procedural(1, Split::Test, seed, options).unwrap());
-    let generator =
-        RoomSampleGenerator::new(corpus.clone(), RoomSampleConfig::default(), seed).unwrap();
-    let view = generator.view_with(&mut CpuRenderer::new(), 0).unwrap();
-    let object = corpus
-        .object(corpus.position(&view.object_id).unwrap())
-        .unwrap();
-    let object = Object::from_mesh((*object.mesh).clone(), seed).unwrap();
-    (view.depth, view.intrinsics, object)
+    let scene = incontext::demo::DemoScene::new(seed).unwrap();
+    let object = Object::from_mesh((*scene.object.mesh).clone(), seed).unwrap();
+    (scene.view.depth, scene.view.intrinsics, object)
 }
 
 fn baseline(c: &mut Criterion) {

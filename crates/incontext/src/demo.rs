@@ -12,7 +12,10 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
-use ic_data::{Corpus, CorpusOptions, ROOM_UNIT_MM, RoomSampleConfig, RoomSampleGenerator, Split};
+use ic_data::{
+    Corpus, CorpusObject, CorpusOptions, ROOM_UNIT_MM, RoomSampleConfig, RoomSampleGenerator,
+    RoomView, Split,
+};
 use ic_geometry::io::{PlyEncoding, write_mesh_ply};
 use ic_geometry::{Image, Mesh, Normalisation};
 use ic_render::CpuRenderer;
@@ -36,6 +39,71 @@ pub struct DemoArgs {
     pub gt_mask: bool,
 }
 
+/// The scene of `incontext demo --seed S`: one procedural object of the test stream alone in
+/// the room, rendered at 640×480 (depth, pose and masks in normalised object units).
+pub struct DemoScene {
+    pub view: RoomView,
+    pub object: Arc<CorpusObject>,
+}
+
+impl DemoScene {
+    pub fn new(seed: u64) -> Result<DemoScene> {
+        let options = CorpusOptions {
+            // The corpus's cached model points are not used here (register samples its own).
+            model_points: 16,
+            ..CorpusOptions::default()
+        };
+        let corpus = Arc::new(
+            Corpus::procedural(1, Split::Test, seed, options)
+                .internal_err("building the object")?,
+        );
+        let generator = RoomSampleGenerator::new(corpus.clone(), RoomSampleConfig::default(), seed)
+            .internal_err("setting up the room")?;
+        let view = generator
+            .view_with(&mut CpuRenderer::new(), 0)
+            .internal_err("rendering the scene")?;
+        let object = corpus
+            .position(&view.object_id)
+            .map(|i| corpus.object(i))
+            .ok_or_else(|| CliError::internal("the rendered object is not in the corpus"))?
+            .internal_err("loading the object")?;
+        Ok(DemoScene { view, object })
+    }
+
+    /// The object's mesh in millimetres ([`ROOM_UNIT_MM`] per normalised unit), as the demo
+    /// writes it.
+    pub fn mesh_mm(&self) -> Mesh {
+        let mesh = &self.object.mesh;
+        Mesh {
+            vertices: mesh
+                .vertices
+                .iter()
+                .map(|v| *v * ROOM_UNIT_MM as f32)
+                .collect(),
+            triangles: mesh.triangles.clone(),
+        }
+    }
+
+    /// The depth map in millimetres (0 = no return).
+    pub fn depth_mm(&self) -> ic_geometry::DepthImage {
+        let d = &self.view.depth;
+        Image {
+            width: d.width,
+            height: d.height,
+            data: d.data.iter().map(|&z| z * ROOM_UNIT_MM as f32).collect(),
+        }
+    }
+
+    /// The true pose of [`DemoScene::mesh_mm`] in the camera frame, mm.
+    pub fn truth_mm(&self) -> ic_geometry::Pose {
+        Normalisation {
+            centre: ic_geometry::glam::DVec3::ZERO,
+            scale: ROOM_UNIT_MM,
+        }
+        .pose_to_original(&self.view.pose)
+    }
+}
+
 pub fn run(args: &DemoArgs, seed: u64) -> Result<Value> {
     let clock = Instant::now();
     if !args.gt_mask && args.networks.seg_model.is_none() && !crate::models::SEG.available() {
@@ -48,25 +116,8 @@ pub fn run(args: &DemoArgs, seed: u64) -> Result<Value> {
     }
     tracing::info!(seed, config = %serde_json::to_string(args).unwrap_or_default(), "incontext demo");
 
-    // The scene: one procedural object of the test stream, in the room.
-    let options = CorpusOptions {
-        // The corpus's cached model points are not used here (register samples its own).
-        model_points: 16,
-        ..CorpusOptions::default()
-    };
-    let corpus = Arc::new(
-        Corpus::procedural(1, Split::Test, seed, options).internal_err("building the object")?,
-    );
-    let generator = RoomSampleGenerator::new(corpus.clone(), RoomSampleConfig::default(), seed)
-        .internal_err("setting up the room")?;
-    let view = generator
-        .view_with(&mut CpuRenderer::new(), 0)
-        .internal_err("rendering the scene")?;
-    let object = corpus
-        .position(&view.object_id)
-        .map(|i| corpus.object(i))
-        .ok_or_else(|| CliError::internal("the rendered object is not in the corpus"))?
-        .internal_err("loading the object")?;
+    let scene = DemoScene::new(seed)?;
+    let (view, object) = (&scene.view, &scene.object);
     let scene_seconds = clock.elapsed().as_secs_f64();
 
     // The files a user would have, in millimetres.
@@ -83,16 +134,11 @@ pub fn run(args: &DemoArgs, seed: u64) -> Result<Value> {
     crate::outputs::check_outputs(&ins, &files.named())?;
     inputs::create_dir(out)?;
     let unit = ROOM_UNIT_MM;
-    let mesh_mm = Mesh {
-        vertices: object
-            .mesh
-            .vertices
-            .iter()
-            .map(|v| *v * unit as f32)
-            .collect(),
-        triangles: object.mesh.triangles.clone(),
-    };
-    write_mesh_ply(&files.model, &mesh_mm, PlyEncoding::BinaryLittleEndian)?;
+    write_mesh_ply(
+        &files.model,
+        &scene.mesh_mm(),
+        PlyEncoding::BinaryLittleEndian,
+    )?;
     let k = view.intrinsics;
     let metres = Image {
         width: view.depth.width,
@@ -110,12 +156,7 @@ pub fn run(args: &DemoArgs, seed: u64) -> Result<Value> {
         &json!({"cam_K": k.k_row_major().concat(), "depth_scale": 1.0, "width": k.width, "height": k.height}),
     )?;
     ic_render::io::write_mask_png(&files.mask, &view.mask_visib)?;
-    // The truth in mm: the mesh file is the normalised mesh scaled by `unit`.
-    let to_mm = Normalisation {
-        centre: ic_geometry::glam::DVec3::ZERO,
-        scale: unit,
-    };
-    let truth_mm = to_mm.pose_to_original(&view.pose);
+    let truth_mm = scene.truth_mm();
     let mut gt = pose_json(&truth_mm);
     gt["bop"] = bop_pose_json(&truth_mm, 1.0);
     gt["units"] = json!("mm, camera frame");
@@ -176,7 +217,7 @@ pub fn run(args: &DemoArgs, seed: u64) -> Result<Value> {
     Ok(json!({
         "command": "demo",
         "seed": seed,
-        "object": {"id": view.object_id, "triangles": mesh_mm.triangles.len(), "diameter_mm": diameter_mm},
+        "object": {"id": view.object_id, "triangles": object.mesh.triangles.len(), "diameter_mm": diameter_mm},
         "scene": {
             "width": k.width, "height": k.height,
             "camera_distance_mm": view.pose.translation.length() * unit,

@@ -334,41 +334,14 @@ fn eval_frames_judges_each_pose_against_the_depth_without_ground_truth() {
 /// The scene of `incontext demo --seed 3` (a procedural object of several parts, alone in the
 /// room, mm) and its true pose.
 fn lone_composite_scene() -> (incontext::Object, ic_geometry::DepthImage, Intrinsics, Pose) {
-    use ic_data::{Corpus, CorpusOptions, ROOM_UNIT_MM, RoomSampleConfig, RoomSampleGenerator};
-    let seed = 3;
-    let options = CorpusOptions {
-        model_points: 16,
-        ..CorpusOptions::default()
-    };
-    let corpus = Arc::new(Corpus::procedural(1, ic_data::Split::Test, seed, options).unwrap());
-    let generator =
-        RoomSampleGenerator::new(corpus.clone(), RoomSampleConfig::default(), seed).unwrap();
-    let view = generator.view_with(&mut CpuRenderer::new(), 0).unwrap();
-    let object = corpus
-        .object(corpus.position(&view.object_id).unwrap())
-        .unwrap();
-    let mm = ROOM_UNIT_MM;
-    let mesh_mm = Mesh {
-        vertices: object
-            .mesh
-            .vertices
-            .iter()
-            .map(|v| *v * mm as f32)
-            .collect(),
-        triangles: object.mesh.triangles.clone(),
-    };
-    let depth_mm = Image {
-        width: view.depth.width,
-        height: view.depth.height,
-        data: view.depth.data.iter().map(|&z| z * mm as f32).collect(),
-    };
-    let truth = ic_geometry::Normalisation {
-        centre: DVec3::ZERO,
-        scale: mm,
-    }
-    .pose_to_original(&view.pose);
-    let object = incontext::Object::from_mesh(mesh_mm, seed).unwrap();
-    (object, depth_mm, view.intrinsics, truth)
+    let scene = incontext::demo::DemoScene::new(3).unwrap();
+    let object = incontext::Object::from_mesh(scene.mesh_mm(), 3).unwrap();
+    (
+        object,
+        scene.depth_mm(),
+        scene.view.intrinsics,
+        scene.truth_mm(),
+    )
 }
 
 #[test]
