@@ -16,7 +16,7 @@ the message; the run goes on.
 
     open3d_peers.py --cases DIR --out results.jsonl [--methods ...] [--seed S] [--threads N]
     open3d_peers.py --check --cases DIR --out results.jsonl [--methods ...]
-    open3d_peers.py --timing --points 512,1024,2048 --repeats 10 --out timing.json [--cases DIR]
+    open3d_peers.py --timing --points 512,1024x768,2048 --repeats 10 --out timing.json [--cases DIR]
 
 See README.md next to this file for the parameters and why they were chosen.
 """
@@ -32,8 +32,8 @@ import time
 from pathlib import Path
 
 from peers_common import (cap_points, case_dirs, case_record, check_results, derived_seed, error_text, log,
-                          machine_info, record_failure, record_pose, resample, resume_done, synthetic_pair,
-                          timing_record, write_record, write_report)
+                          machine_info, parse_sizes, record_failure, record_pose, resample, resume_done,
+                          size_label, synthetic_pair, timing_record, write_record, write_report)
 
 METHODS = ["icp-p2p", "icp-p2l", "fpfh-ransac", "fpfh-ransac-icp", "fgr"]
 PREFIX = "o3d-"
@@ -77,7 +77,9 @@ def parse_args(argv=None):
                    help="add a \"details\" object (fitness, inlier RMSE, point counts) to each line")
     p.add_argument("--check", action="store_true", help="validate --out: exactly one line per (case, method)")
     p.add_argument("--timing", action="store_true", help="timing mode on synthetic pairs, writes one JSON file")
-    p.add_argument("--points", default="512,1024,2048", help="timing mode: point counts")
+    p.add_argument("--points", default="512,1024,2048",
+                   help="timing mode: comma-separated sizes, each N (model and observed N points) or MxN "
+                        "(model M, observed N)")
     p.add_argument("--repeats", type=int, default=5, help="timing mode: runs per (method, points), median reported")
     args = p.parse_args(argv)
     args.methods = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -90,6 +92,10 @@ def parse_args(argv=None):
         p.error("--voxel must be positive")
     if args.threads < 0 or args.repeats < 1 or args.max_target_points < 0:
         p.error("--threads, --max-target-points must be >= 0 and --repeats >= 1")
+    try:
+        args.sizes = parse_sizes(args.points)
+    except ValueError as e:
+        p.error(f"--points: {e}")
     return args
 
 
@@ -288,36 +294,38 @@ def timing(args):
 
     o3d = import_open3d(args.threads)
     pipe = Pipeline(o3d, args)
-    sizes = [int(s) for s in args.points.split(",") if s.strip()]
     case = None
     if args.cases is not None:
         case = args.cases if (args.cases / "source.ply").is_file() else case_dirs(args.cases)[0]
-    config = {"mode": "timing", "points": sizes, "repeats": args.repeats, "seed": args.seed,
-              "methods": [PREFIX + m for m in args.methods], "threads": args.threads or "open3d default",
+    config = {"mode": "timing", "points": [size_label(*size) for size in args.sizes], "repeats": args.repeats,
+              "seed": args.seed, "methods": [PREFIX + m for m in args.methods],
+              "threads": args.threads or "open3d default",
               "pair": str(case) if case else "synthetic bumpy ellipsoid", **pipe.config()}
     print(f"open3d_peers seed {args.seed} config {json.dumps(config)}", flush=True)
     results = []
-    total, k = len(sizes) * len(args.methods), 0
-    for n in sizes:
+    total, k = len(args.sizes) * len(args.methods), 0
+    for n_model, n_obs in args.sizes:
+        # The seeds' key: str(n) for a square size (the draws of plain `--points N`), else "MxN".
+        size = size_label(n_model, n_obs)
         if case is None:
-            source, target = synthetic_pair(n, derived_seed(args.seed, "timing"))
+            source, target = synthetic_pair(n_model, derived_seed(args.seed, "timing"), observed=n_obs)
         else:
-            rng = np.random.default_rng(derived_seed(args.seed, "timing", str(n)))
-            source = resample(read_points(o3d, case / "source.ply"), n, rng)
-            target = resample(read_points(o3d, case / "target.ply"), n, rng)
+            rng = np.random.default_rng(derived_seed(args.seed, "timing", size))
+            source = resample(read_points(o3d, case / "source.ply"), n_model, rng)
+            target = resample(read_points(o3d, case / "target.ply"), n_obs, rng)
         for m in args.methods:
             k += 1
             runs, details, error = [], {}, None
             try:
-                o3d.utility.random.seed(derived_seed(args.seed, "timing", str(n), seed_key(m)))
+                o3d.utility.random.seed(derived_seed(args.seed, "timing", size, seed_key(m)))
                 pipe.run(m, source, target)  # warm-up, not counted
                 for _ in range(args.repeats):
-                    o3d.utility.random.seed(derived_seed(args.seed, "timing", str(n), seed_key(m)))
+                    o3d.utility.random.seed(derived_seed(args.seed, "timing", size, seed_key(m)))
                     _, seconds, details = pipe.run(m, source, target)
                     runs.append(seconds)
             except Exception as e:  # noqa: BLE001
                 error = error_text(e)
-            results.append(timing_record(PREFIX + m, n, runs, error, k, total,
+            results.append(timing_record(PREFIX + m, n_model, n_obs, runs, error, k, total,
                                          source_down=details.get("source_down"),
                                          target_down=details.get("target_down")))
     report = {"machine": machine_info(o3d.utility.get_max_threads()), "open3d_version": o3d.__version__,

@@ -1,7 +1,7 @@
 """Helpers shared by the peers' scripts (open3d_peers.py, ppf_peers.py; see README.md).
 
 Case folders, derived seeds, the target cap, the result lines and their `--check`, the timing
-pairs and the machine description. Standard library at import time; numpy is imported inside
+sizes (`--points`) and pairs and the machine description. Standard library at import time; numpy is imported inside
 the functions that need it, so `--check` and `--help` work without it.
 """
 
@@ -11,6 +11,7 @@ import json
 import math
 import os
 import platform
+import re
 import sys
 import zlib
 from pathlib import Path
@@ -35,6 +36,31 @@ def derived_seed(seed: int, *parts: str) -> int:
     """A seed that depends only on (seed, parts): results do not depend on what ran before."""
     h = zlib.crc32("\x1f".join(parts).encode())
     return (seed * 1_000_003 + h) % (2**31 - 1)
+
+
+def parse_sizes(text: str) -> list[tuple[int, int]]:
+    """The timing sizes of `--points`: comma-separated entries, each `N` (model and observed
+    both N points) or `MxN` (model M points, observed N), positive integers; as (M, N) pairs in
+    the order given. Empty entries are skipped; a bad entry, or none at all, raises ValueError
+    naming it."""
+    sizes = []
+    for entry in text.split(","):
+        if not entry.strip():
+            continue
+        parts = [x.strip() for x in entry.lower().split("x")]
+        if len(parts) > 2 or not all(re.fullmatch(r"[0-9]+", x) for x in parts) or min(map(int, parts)) < 1:
+            raise ValueError(f"bad size {entry.strip()!r}: expected N or MxN (model x observed points), "
+                             "positive integers")
+        m, n = int(parts[0]), int(parts[-1])
+        sizes.append((m, n))
+    if not sizes:
+        raise ValueError(f"{text!r}: no sizes (expected comma-separated N or MxN)")
+    return sizes
+
+
+def size_label(m: int, n: int) -> str:
+    """How a timing size is written (log lines, config, seed keys): `N` when square, else `MxN`."""
+    return str(m) if m == n else f"{m}x{n}"
 
 
 def cap_points(pts, max_points: int, seed: int):
@@ -175,17 +201,17 @@ def write_record(out, rec, n: int, total: int) -> bool:
     return not rec["ok"]
 
 
-def timing_record(method: str, n: int, runs, error, k: int, total: int, **extra):
-    """One timing result (method at `n` points: the seconds of each repeat, or the error),
-    logged as the `k`-th of `total`; `extra` are the script's own fields."""
+def timing_record(method: str, m: int, n: int, runs, error, k: int, total: int, **extra):
+    """One timing result (method at `m` model and `n` observed points: the seconds of each
+    repeat, or the error), logged as the `k`-th of `total`; `extra` are the script's own fields."""
     import statistics
 
-    rec = {"method": method, "points": n,
+    rec = {"method": method, "points": m, "observed_points": n,
            "median_seconds": statistics.median(runs) if runs else None,
            "min_seconds": min(runs) if runs else None, "runs": runs, "ok": error is None, "error": error,
            **extra}
     med = f"{rec['median_seconds']:.4f}s" if runs else f"FAILED: {error}"
-    log(f"[{k}/{total}] {method} n={n} median {med}")
+    log(f"[{k}/{total}] {method} n={size_label(m, n)} median {med}")
     return rec
 
 
@@ -198,10 +224,11 @@ def write_report(out: Path, report):
     log(f"wrote {out}")
 
 
-def synthetic_pair(n: int, seed: int, with_normals: bool = False):
-    """n model points on a bumpy closed surface spanning [-1, 1], and n points of an
-    independent sample of the same surface rotated and moved to z = 2.8 with 0.005 noise.
-    The surface and the pose depend on the seed only, the samples on (seed, n).
+def synthetic_pair(n: int, seed: int, with_normals: bool = False, observed: int | None = None):
+    """n model points on a bumpy closed surface spanning [-1, 1], and `observed` (default n)
+    points of an independent sample of the same surface rotated and moved to z = 2.8 with 0.005
+    noise. The surface and the pose depend on the seed only, the samples on (seed, n) when
+    square (observed = n) and on (seed, n, observed) otherwise.
 
     With `with_normals`, also the model's outward unit normals (the gradient of the surface's
     implicit function |x/s| − r(x/s / |x/s|), by central differences): (model, normals, target).
@@ -228,8 +255,9 @@ def synthetic_pair(n: int, seed: int, with_normals: bool = False):
         return r - radius(u / r[:, None])
 
     q = rng.normal(size=4)
-    rng = np.random.default_rng([seed, n])
-    model, observed = sample(n), sample(n)
+    n_obs = n if observed is None else observed
+    rng = np.random.default_rng([seed, n] if n_obs == n else [seed, n, n_obs])
+    model, observed = sample(n), sample(n_obs)
     normals = None
     if with_normals:
         h = 1e-6

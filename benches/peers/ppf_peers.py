@@ -20,7 +20,7 @@ and ICP for the refined methods.
 
     ppf_peers.py --cases DIR --out results.jsonl [--methods ...] [--seed S] [--threads N]
     ppf_peers.py --check --cases DIR --out results.jsonl [--methods ...]
-    ppf_peers.py --timing --points 512,1024,2048 --repeats 3 --out timing.json [--cases DIR]
+    ppf_peers.py --timing --points 512,1024x768,2048 --repeats 3 --out timing.json [--cases DIR]
 
 See README.md next to this file for every parameter and why.
 """
@@ -36,8 +36,8 @@ import time
 from pathlib import Path
 
 from peers_common import (cap_points, case_dirs, case_record, check_results, derived_seed, error_text, log,
-                          machine_info, record_failure, record_pose, resample_indices, resume_done, synthetic_pair,
-                          timing_record, write_record, write_report)
+                          machine_info, parse_sizes, record_failure, record_pose, resample_indices, resume_done,
+                          size_label, synthetic_pair, timing_record, write_record, write_report)
 
 METHODS = ["ppf", "ppf-icp", "ppf-tuned"]
 PREFIX = "opencv-"
@@ -144,7 +144,9 @@ def parse_args(argv=None):
                    help="add a \"details\" object (stage times, point counts, votes, fit) to each line")
     p.add_argument("--check", action="store_true", help="validate --out: exactly one line per (case, method)")
     p.add_argument("--timing", action="store_true", help="timing mode, writes one JSON file")
-    p.add_argument("--points", default="512,1024,2048", help="timing mode: point counts")
+    p.add_argument("--points", default="512,1024,2048",
+                   help="timing mode: comma-separated sizes, each N (model and observed N points) or MxN "
+                        "(model M, observed N)")
     p.add_argument("--repeats", type=int, default=3, help="timing mode: runs per (method, points), median reported")
     args = p.parse_args(argv)
     args.methods = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -158,11 +160,9 @@ def parse_args(argv=None):
     if args.threads < 0 or args.repeats < 1 or args.max_target_points < 0 or args.limit < 0:
         p.error("--threads, --max-target-points and --limit must be >= 0 and --repeats >= 1")
     try:
-        args.sizes = [int(s) for s in args.points.split(",") if s.strip()]
-    except ValueError:
-        p.error(f"--points {args.points!r}: expected comma-separated integers")
-    if args.timing and (not args.sizes or min(args.sizes) < 1):
-        p.error("--points needs at least one positive count")
+        args.sizes = parse_sizes(args.points)
+    except ValueError as e:
+        p.error(f"--points: {e}")
     try:
         args.params = dict(PARAMS, **{"ppf-tuned": override(TUNED, args.tuned)})
     except ValueError as e:
@@ -852,21 +852,25 @@ def timing(args):
         source_all = read_points(case / "source.ply")
         target_all = read_points(case / "target.ply")
         normals_all, _ = ModelNormals(args)(case, source_all)
-    config = {"mode": "timing", "points": args.sizes, "repeats": args.repeats, "seed": args.seed,
-              "methods": [PREFIX + m for m in args.methods], "threads": args.threads or "opencv default",
+    config = {"mode": "timing", "points": [size_label(*size) for size in args.sizes], "repeats": args.repeats,
+              "seed": args.seed, "methods": [PREFIX + m for m in args.methods],
+              "threads": args.threads or "opencv default",
               "pair": str(case) if case else "synthetic bumpy ellipsoid", "params": params_config(args)}
     print(f"ppf_peers seed {args.seed} config {json.dumps(config)}", flush=True)
     results = []
     total, k = len(args.sizes) * len(args.methods), 0
-    for n in args.sizes:
+    for n_model, n_obs in args.sizes:
+        # The seeds' key: str(n) for a square size (the draws of plain `--points N`), else "MxN".
+        size = size_label(n_model, n_obs)
         if case is None:
-            source, normals, target = synthetic_pair(n, derived_seed(args.seed, "timing"), with_normals=True)
+            source, normals, target = synthetic_pair(n_model, derived_seed(args.seed, "timing"), with_normals=True,
+                                                     observed=n_obs)
         else:
-            # The same draws as open3d_peers.py --timing: the same n-point pair.
-            rng = np.random.default_rng(derived_seed(args.seed, "timing", str(n)))
-            idx, jitter = resample_indices(len(source_all), n, rng)
+            # The same draws as open3d_peers.py --timing: the same (n_model, n_obs)-point pair.
+            rng = np.random.default_rng(derived_seed(args.seed, "timing", size))
+            idx, jitter = resample_indices(len(source_all), n_model, rng)
             source, normals = source_all[idx] + jitter, normals_all[idx]
-            idx, jitter = resample_indices(len(target_all), n, rng)
+            idx, jitter = resample_indices(len(target_all), n_obs, rng)
             target = target_all[idx] + jitter
         model = np.hstack([source, normals]).astype(np.float32)
         stages = {}
@@ -879,7 +883,7 @@ def timing(args):
                 # reuses that method's stage of the same repeat and adds its time: the same
                 # total as running it again, for half the work.
                 key = params.ppf_key()
-                cv2.setRNGSeed(derived_seed(args.seed, "timing", str(n), m))
+                cv2.setRNGSeed(derived_seed(args.seed, "timing", size, m))
                 ppf.run(params, model, target, stages.get((key, 0)))  # warm-up, not counted
                 for i in range(args.repeats):
                     _, seconds, details, stage = ppf.run(params, model, target, stages.get((key, i)))
@@ -887,7 +891,7 @@ def timing(args):
                     runs.append(seconds)
             except Exception as e:  # noqa: BLE001
                 error = error_text(e)
-            results.append(timing_record(PREFIX + m, n, runs, error, k, total,
+            results.append(timing_record(PREFIX + m, n_model, n_obs, runs, error, k, total,
                                          scene_points=details.get("scene_points"),
                                          train_seconds=details.get("train_seconds"),
                                          match_seconds=details.get("match_seconds")))

@@ -6,7 +6,13 @@
         rotated by 120° and moved 2.8 away; a local one: rotated by 4°; a broken one without
         target.ply), runs every method with the venv's Python, runs --check and asserts that
         the run survived the broken case, that every pose is a rotation, and that
-        fpfh-ransac-icp solves the global case and icp-p2p the local one.
+        fpfh-ransac-icp solves the global case and icp-p2p the local one. Then the timing
+        mode's tests: `--points` sizes N and MxN (bad ones are usage errors), the records'
+        points / observed_points, and the pairs each size draws. The last runs timing() in
+        this interpreter and is skipped unless it has numpy and Open3D (the venv's Python has).
+
+    target/peers-venv/bin/python -m pytest benches/peers/test_open3d_peers.py
+        the same tests with pytest (skipped ones: Open3D missing).
 
     python3 benches/peers/test_open3d_peers.py --summarise results.jsonl --cases DIR
         rotation error arccos((tr(R̂ᵀR) − 1)/2) and translation error ‖t̂ − t‖ against each
@@ -25,11 +31,16 @@ import struct
 import subprocess
 import sys
 import tempfile
+import unittest
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 SCRIPT = HERE / "open3d_peers.py"
 REPO = HERE.parent.parent
+sys.path.insert(0, str(HERE))
+
+import open3d_peers  # noqa: E402  (standard library at import time, like peers_common)
+import peers_common  # noqa: E402
 
 
 def peers_python():
@@ -170,6 +181,141 @@ def self_check():
     return 0
 
 
+def has_open3d(python):
+    return subprocess.run([python, "-c", "import numpy, open3d"], capture_output=True).returncode == 0
+
+
+def test_self_check():
+    if not has_open3d(peers_python()):
+        raise unittest.SkipTest(f"{peers_python()} cannot import open3d")
+    assert self_check() == 0
+
+
+def test_bad_points_are_usage_errors():
+    """--points takes N or MxN entries; anything else stops before any work (no Open3D needed)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "t.json"
+        for bad in ("512,0", "1024x", "12x3x4", "abc", "-5", ""):
+            proc = subprocess.run([sys.executable, str(SCRIPT), "--timing", "--out", str(out), f"--points={bad}"],
+                                  capture_output=True, text=True)
+            assert proc.returncode == 2 and "usage:" in proc.stderr and "--points" in proc.stderr, (bad, proc.stderr)
+            assert not out.exists()
+    assert open3d_peers.parse_args(["--timing", "--out", "t.json", "--points", "256, 300x200"]).sizes == [
+        (256, 256), (300, 200)]
+    assert open3d_peers.parse_args(["--timing", "--out", "t.json"]).sizes == [(512, 512), (1024, 1024), (2048, 2048)]
+
+
+def test_timing_writes_points_and_observed_points():
+    """A real timing run on the synthetic pair: one record per (size, method) with the model
+    and observed counts, the config's sizes as given and `n=MxN` in the log."""
+    py = peers_python()
+    if not has_open3d(py):
+        raise unittest.SkipTest(f"{py} cannot import open3d")
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "timing.json"
+        proc = subprocess.run([py, str(SCRIPT), "--timing", "--points", "512,600x400", "--repeats", "1", "--out",
+                               str(out), "--methods", "icp-p2p,fpfh-ransac", "--threads", "1"],
+                              capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr
+        config = json.loads(proc.stdout.splitlines()[0].split(" config ", 1)[1])
+        assert config["points"] == ["512", "600x400"], config["points"]
+        assert "o3d-icp-p2p n=600x400 median" in proc.stderr and "o3d-icp-p2p n=512 median" in proc.stderr
+        report = json.loads(out.read_text())
+        got = [(r["method"], r["points"], r["observed_points"]) for r in report["results"]]
+        assert got == [("o3d-icp-p2p", 512, 512), ("o3d-fpfh-ransac", 512, 512), ("o3d-icp-p2p", 600, 400),
+                       ("o3d-fpfh-ransac", 600, 400)], got
+        for r in report["results"]:
+            assert r["ok"] and r["median_seconds"] > 0 and len(r["runs"]) == 1, r
+        fpfh = [r for r in report["results"] if r["method"] == "o3d-fpfh-ransac"]
+        assert all(0 < r["source_down"] <= r["points"] and 0 < r["target_down"] <= r["observed_points"] for r in fpfh)
+
+
+def test_timing_resamples_the_model_and_the_observed_points_to_each_size():
+    """In this interpreter (numpy and Open3D needed): a pair entry MxN resamples source.ply to M
+    and target.ply to N points with the key "MxN"; a square entry N keeps the key str(N), the
+    draws of plain `--points N` (and of ppf_peers.py's timing)."""
+    try:
+        import numpy as np
+        import open3d  # noqa: F401
+    except ImportError as e:
+        raise unittest.SkipTest(f"needs numpy and open3d: {e}")
+    calls, seeds = [], []
+
+    class Probe:
+        def __init__(self, o3d, args):
+            pass
+
+        def config(self):
+            return {}
+
+        def run(self, method, source, target):
+            calls.append((method, np.array(source), np.array(target)))
+            return np.eye(4), 0.001, {"source_down": len(source), "target_down": len(target)}
+
+    class O3d:
+        """Open3D with its random seed recorded."""
+
+        def __init__(self, o3d):
+            self._o3d = o3d
+            self.utility = type("Utility", (), {"random": type("Random", (), {"seed": staticmethod(seeds.append)}),
+                                                "get_max_threads": staticmethod(o3d.utility.get_max_threads)})
+
+        def __getattr__(self, name):
+            return getattr(self._o3d, name)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cases, out = Path(tmp) / "cases", Path(tmp) / "timing.json"
+        make_case(cases / "case_00000", box_surface(random.Random(3), 500), axis_angle((1, 2, 3), 120),
+                  [0.1, -0.2, 2.8])
+        real_import, saved = open3d_peers.import_open3d, (open3d_peers.import_open3d, open3d_peers.Pipeline)
+        open3d_peers.import_open3d = lambda threads: O3d(real_import(threads))
+        open3d_peers.Pipeline = Probe
+        try:
+            args = open3d_peers.parse_args(["--timing", "--points", "256,300x200,600x700", "--repeats", "2",
+                                            "--cases", str(cases), "--out", str(out), "--methods",
+                                            "icp-p2p,fpfh-ransac-icp", "--seed", "5"])
+            assert open3d_peers.timing(args) == 0
+        finally:
+            open3d_peers.import_open3d, open3d_peers.Pipeline = saved
+        report = json.loads(out.read_text())
+        got = [(r["method"], r["points"], r["observed_points"], r["source_down"], r["target_down"])
+               for r in report["results"]]
+        assert got == [("o3d-icp-p2p", 256, 256, 256, 256), ("o3d-fpfh-ransac-icp", 256, 256, 256, 256),
+                       ("o3d-icp-p2p", 300, 200, 300, 200), ("o3d-fpfh-ransac-icp", 300, 200, 300, 200),
+                       ("o3d-icp-p2p", 600, 700, 600, 700), ("o3d-fpfh-ransac-icp", 600, 700, 600, 700)], got
+        assert len(calls) == 18, len(calls)  # a warm-up and 2 repeats per (size, method)
+        o3d = open3d_peers.import_open3d(0)
+        source_all = open3d_peers.read_points(o3d, cases / "case_00000" / "source.ply")
+        target_all = open3d_peers.read_points(o3d, cases / "case_00000" / "target.ply")
+        want_seeds = []
+        for i, (label, m, n) in enumerate((("256", 256, 256), ("300x200", 300, 200), ("600x700", 600, 700))):
+            rng = np.random.default_rng(peers_common.derived_seed(5, "timing", label))
+            source = peers_common.resample(source_all, m, rng)
+            target = peers_common.resample(target_all, n, rng)
+            for _, s, t in calls[6 * i: 6 * i + 6]:
+                assert s.shape == (m, 3) and t.shape == (n, 3), (label, s.shape, t.shape)
+                assert np.array_equal(s, source) and np.array_equal(t, target), label
+            for method in ("icp-p2p", "fpfh-ransac"):  # fpfh-ransac-icp seeds as fpfh-ransac
+                want_seeds += [peers_common.derived_seed(5, "timing", label, method)] * 3
+        assert seeds == want_seeds, (seeds, want_seeds)
+
+
+def run_tests():
+    tests = [(name, fn) for name, fn in globals().items() if name.startswith("test_") and callable(fn)]
+    failed = 0
+    for name, fn in tests:
+        try:
+            fn()
+            print(f"PASS {name}")
+        except unittest.SkipTest as e:
+            print(f"SKIP {name}: {e}")
+        except Exception as e:  # noqa: BLE001
+            failed += 1
+            print(f"FAIL {name}: {type(e).__name__}: {e}")
+    print(f"{len(tests) - failed} passed or skipped, {failed} failed")
+    return 1 if failed else 0
+
+
 def summarise(results, cases):
     recs = [json.loads(line) for line in Path(results).read_text().splitlines() if line.strip()]
     by_method = {}
@@ -206,4 +352,4 @@ if __name__ == "__main__":
         sys.exit(summarise(sys.argv[2], sys.argv[4]))
     if len(sys.argv) > 1:
         sys.exit(__doc__)
-    sys.exit(self_check())
+    sys.exit(run_tests())

@@ -285,6 +285,100 @@ def test_timing_pairs_are_the_open3d_scripts():
     m2, _ = peers_common.synthetic_pair(512, 7)
     assert np.array_equal(model, m2)
     assert ((normals * (model - model.mean(0))).sum(1) > 0).all(), "outward on a star-shaped surface"
+    # observed = n is the square pair, draw for draw; otherwise the observed sample has its own size.
+    square = peers_common.synthetic_pair(512, 7, with_normals=True, observed=512)
+    assert all(np.array_equal(a, b) for a, b in zip(square, (model, normals, _)))
+    model, normals, target = peers_common.synthetic_pair(300, 7, with_normals=True, observed=200)
+    assert model.shape == normals.shape == (300, 3) and target.shape == (200, 3)
+
+
+def test_parse_sizes_takes_n_and_mxn():
+    parse = peers_common.parse_sizes
+    assert parse("512,1024,2048") == [(512, 512), (1024, 1024), (2048, 2048)]
+    assert parse(" 384x288, 1024X768 ,512,") == [(384, 288), (1024, 768), (512, 512)]
+    assert parse("7") == [(7, 7)] and parse("1x1") == [(1, 1)]
+    for text, entry in (("512,0", "'0'"), ("0x5", "'0x5'"), ("5x0", "'5x0'"), ("x5", "'x5'"), ("5x", "'5x'"),
+                        ("1x2x3", "'1x2x3'"), ("-5", "'-5'"), ("+5", "'+5'"), ("1_000", "'1_000'"),
+                        ("5.0", "'5.0'"), ("512,abc,1024", "'abc'"), ("512*384", "'512*384'"), ("", "no sizes"),
+                        (" , ", "no sizes")):
+        try:
+            parse(text)
+        except ValueError as e:
+            assert entry in str(e), (text, str(e))
+        else:
+            raise AssertionError(f"parse_sizes accepted {text!r}")
+    assert peers_common.size_label(512, 512) == "512" and peers_common.size_label(1024, 768) == "1024x768"
+
+
+def test_bad_points_are_usage_errors():
+    with tempfile.TemporaryDirectory() as tmp:
+        for bad in ("512,0", "1024x", "12x3x4", "abc", "-5", ""):
+            proc = run_script("--timing", "--out", Path(tmp) / "t.json", f"--points={bad}", check=False)
+            assert proc.returncode == 2 and "usage:" in proc.stderr and "--points" in proc.stderr, (bad, proc.stderr)
+            assert not (Path(tmp) / "t.json").exists()
+        args = ppf_peers.parse_args(["--timing", "--out", "t.json", "--points", "256,300x200"])
+        assert args.sizes == [(256, 256), (300, 200)]
+        assert ppf_peers.parse_args(["--timing", "--out", "t.json"]).sizes == [(512, 512), (1024, 1024), (2048, 2048)]
+
+
+class _FakeCv2:
+    """What timing() asks of cv2, recording the seeds."""
+    __version__ = "fake"
+
+    def __init__(self):
+        self.seeds = []
+
+    def setRNGSeed(self, seed):  # noqa: N802 (OpenCV's name)
+        self.seeds.append(seed)
+
+    def getNumThreads(self):  # noqa: N802
+        return 1
+
+
+def test_timing_resamples_the_model_and_the_observed_points_to_each_size():
+    """A pair entry MxN times M model points against N observed points, drawn with the key
+    "MxN"; a square entry N keeps the key str(N), the draws of plain `--points N`."""
+    with tempfile.TemporaryDirectory() as tmp:
+        cases, out = Path(tmp) / "cases", Path(tmp) / "timing.json"
+        case = make_case(cases / "case_00000", 41, TRUE_R, TRUE_T, model_points=500, view_points=500)
+        calls, cv2 = [], _FakeCv2()
+
+        class Probe:
+            def __init__(self, _cv2):
+                pass
+
+            def run(self, params, model, target, stage):
+                calls.append((model.copy(), target.copy()))
+                return np.eye(4), 0.001, {"scene_points": len(target)}, None
+
+        saved = ppf_peers.import_cv2, ppf_peers.Ppf
+        ppf_peers.import_cv2, ppf_peers.Ppf = (lambda threads: cv2), Probe
+        try:
+            args = ppf_peers.parse_args(["--timing", "--points", "256,300x200,600x700", "--repeats", "2", "--cases",
+                                         str(cases), "--out", str(out), "--methods", "ppf,ppf-icp", "--seed", "5"])
+            assert ppf_peers.timing(args) == 0
+        finally:
+            ppf_peers.import_cv2, ppf_peers.Ppf = saved
+        report = json.loads(out.read_text())
+        got = [(r["method"], r["points"], r["observed_points"], r["scene_points"]) for r in report["results"]]
+        assert got == [("opencv-ppf", 256, 256, 256), ("opencv-ppf-icp", 256, 256, 256),
+                       ("opencv-ppf", 300, 200, 200), ("opencv-ppf-icp", 300, 200, 200),
+                       ("opencv-ppf", 600, 700, 700), ("opencv-ppf-icp", 600, 700, 700)], got
+        # A warm-up and 2 repeats per (size, method), every one on the size's pair.
+        assert len(calls) == 18
+        source_all = ppf_peers.read_points(case / "source.ply")
+        target_all = ppf_peers.read_points(case / "target.ply")
+        assert len(source_all) == 500 and len(target_all) == 500
+        seeds = []
+        for i, (label, m, n) in enumerate((("256", 256, 256), ("300x200", 300, 200), ("600x700", 600, 700))):
+            rng = np.random.default_rng(peers_common.derived_seed(5, "timing", label))
+            source = peers_common.resample(source_all, m, rng)
+            target = peers_common.resample(target_all, n, rng)
+            for model, observed in calls[6 * i: 6 * i + 6]:
+                assert model.shape == (m, 6) and observed.shape == (n, 3), (label, model.shape, observed.shape)
+                assert np.array_equal(model[:, :3], source.astype(np.float32)) and np.array_equal(observed, target)
+            seeds += [peers_common.derived_seed(5, "timing", label, method) for method in ("ppf", "ppf-icp")]
+        assert cv2.seeds == seeds, (cv2.seeds, seeds)
 
 
 # --- end to end --------------------------------------------------------------------------------
@@ -388,14 +482,19 @@ def test_timing_mode_writes_medians_for_every_size():
     with tempfile.TemporaryDirectory() as tmp:
         cases, out = Path(tmp) / "cases", Path(tmp) / "timing.json"
         make_case(cases / "case_00000", 40, TRUE_R, TRUE_T, model_points=500, view_points=500)
-        run_script("--timing", "--points", "256,400", "--repeats", "1", "--cases", cases, "--out", out,
-                   "--methods", "ppf,ppf-icp", "--threads", "1")
+        proc = run_script("--timing", "--points", "256,400,300x200", "--repeats", "1", "--cases", cases, "--out", out,
+                          "--methods", "ppf,ppf-icp", "--threads", "1")
+        config = json.loads(proc.stdout.splitlines()[0].split(" config ", 1)[1])
+        assert config["points"] == ["256", "400", "300x200"], config["points"]
+        assert "opencv-ppf n=300x200 median" in proc.stderr and "opencv-ppf n=256 median" in proc.stderr, proc.stderr
         report = json.loads(out.read_text())
-        got = {(r["method"], r["points"]): r for r in report["results"]}
-        assert sorted(got) == [("opencv-ppf", 256), ("opencv-ppf", 400), ("opencv-ppf-icp", 256),
-                               ("opencv-ppf-icp", 400)]
-        for r in got.values():
+        got = {(r["method"], r["points"], r["observed_points"]): r for r in report["results"]}
+        assert sorted(got) == [("opencv-ppf", 256, 256), ("opencv-ppf", 300, 200), ("opencv-ppf", 400, 400),
+                               ("opencv-ppf-icp", 256, 256), ("opencv-ppf-icp", 300, 200),
+                               ("opencv-ppf-icp", 400, 400)], sorted(got)
+        for (_, _, n), r in got.items():
             assert r["ok"] and r["median_seconds"] > 0 and len(r["runs"]) == 1, r
+            assert 0 < r["scene_points"] <= n, r
         assert report["opencv_version"] and report["threads"] == 1
 
 

@@ -90,8 +90,7 @@ fn read_symmetries(path: &Path) -> Result<BTreeMap<String, ObjectSymmetry>> {
     Ok(out)
 }
 
-/// BOP's MSSD thresholds (fractions of the diameter).
-const MSSD_THRESHOLDS: [f64; 10] = [0.05, 0.10, 0.15, 0.20, 0.25, 0.30, 0.35, 0.40, 0.45, 0.50];
+use ic_eval::object_scores::MSSD_THRESHOLDS;
 
 /// One scored line.
 struct Scored {

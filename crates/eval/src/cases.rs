@@ -21,8 +21,8 @@
 //!
 //! let truth = Pose::from_translation(DVec3::new(0.0, 0.0, 2.8));
 //! let cases = vec![
-//!     CaseTruth { case: "a".into(), pose: truth, object_id: None },
-//!     CaseTruth { case: "b".into(), pose: truth, object_id: None },
+//!     CaseTruth::new("a", truth),
+//!     CaseTruth::new("b", truth),
 //! ];
 //! let line = ResultLine::from_pose("a", "icp", &truth, 0.01);
 //! let scores = score_results(&cases, &[line]).unwrap();
@@ -33,11 +33,13 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use ic_geometry::Pose;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
+use crate::object_scores::{CaseGeometry, ObjectErrors, ObjectScore};
 use crate::{EvalError, MethodResult, PoseErrors, Summary, auc, median};
 
 /// Rotation error given to a failed or missing estimate (degrees).
@@ -52,6 +54,21 @@ pub struct CaseTruth {
     pub pose: Pose,
     /// `object_id` from `meta.json`, when present.
     pub object_id: Option<String>,
+    /// The model points, symmetries and camera of the object metrics (ADD-S, MSSD, MSPD);
+    /// `None` scores rotation and translation only.
+    pub geometry: Option<Arc<CaseGeometry>>,
+}
+
+impl CaseTruth {
+    /// A case without object id or geometry.
+    pub fn new(case: impl Into<String>, pose: Pose) -> Self {
+        CaseTruth {
+            case: case.into(),
+            pose,
+            object_id: None,
+            geometry: None,
+        }
+    }
 }
 
 fn format_error(path: &Path, message: impl Into<String>) -> EvalError {
@@ -299,6 +316,7 @@ pub fn read_case_truths(dir: &Path) -> Result<Vec<CaseTruth>, EvalError> {
                 case: c.name(),
                 pose: c.read_gt()?,
                 object_id: c.read_object_id()?,
+                geometry: None,
             })
         })
         .collect()
@@ -463,6 +481,9 @@ pub struct CaseScore {
     #[serde(flatten)]
     pub outcome: CaseOutcome,
     pub seconds: Option<f64>,
+    /// ADD-S, MSSD and MSPD of a scored pose, when the case has its geometry.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub object: Option<ObjectErrors>,
 }
 
 /// One method scored on a set of cases.
@@ -482,6 +503,9 @@ pub struct MethodScore {
     pub translation_auc_1e2: f64,
     /// Median of the plain L2 translation error (failures as ∞).
     pub translation_l2_median: f64,
+    /// ADD-S < 0.1·d, AR_MSSD and AR_MSPD, when every case has its geometry.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub object: Option<ObjectScore>,
     pub cases: Vec<CaseScore>,
 }
 
@@ -562,15 +586,24 @@ fn score_method(method: &str, cases: &[CaseTruth], lines: &[Option<&ResultLine>]
     let mut scores = Vec::with_capacity(cases.len());
     let (mut scored, mut failed, mut missing) = (0, 0, 0);
     for (truth, line) in cases.iter().zip(lines) {
+        let mut object = None;
         let outcome = match line {
             None => {
                 missing += 1;
                 CaseOutcome::Missing
             }
             Some(l) => match l.pose() {
-                Ok(p) => match PoseErrors::compute(&p, &truth.pose, None) {
-                    Ok(errors) => {
+                Ok(p) => match PoseErrors::compute(&p, &truth.pose, None).and_then(|errors| {
+                    let o = truth
+                        .geometry
+                        .as_deref()
+                        .map(|g| ObjectErrors::compute(&p, &truth.pose, g))
+                        .transpose()?;
+                    Ok((errors, o))
+                }) {
+                    Ok((errors, o)) => {
                         scored += 1;
+                        object = o;
                         CaseOutcome::Scored { errors }
                     }
                     Err(e) => {
@@ -591,6 +624,7 @@ fn score_method(method: &str, cases: &[CaseTruth], lines: &[Option<&ResultLine>]
             object_id: truth.object_id.clone(),
             outcome,
             seconds: line.and_then(|l| l.seconds).filter(|s| s.is_finite()),
+            object,
         });
     }
     let errors: Vec<Option<PoseErrors>> = scores
@@ -632,8 +666,23 @@ fn score_method(method: &str, cases: &[CaseTruth], lines: &[Option<&ResultLine>]
         rotation_auc_15: auc(&rot, 15.0, 1501),
         translation_auc_1e2: auc(&tsq, 1e-2, 1001),
         translation_l2_median: median(&l2),
+        object: object_score(cases, &scores),
         cases: scores,
     }
+}
+
+/// The object metrics over the cases, when every case has its geometry (a failed or missing
+/// case counts as wrong); MSPD's pixel thresholds follow the first camera's width.
+fn object_score(cases: &[CaseTruth], scores: &[CaseScore]) -> Option<ObjectScore> {
+    if cases.is_empty() || cases.iter().any(|c| c.geometry.is_none()) {
+        return None;
+    }
+    let width = cases
+        .iter()
+        .find_map(|c| c.geometry.as_ref()?.intrinsics.map(|k| k.width))
+        .unwrap_or(640);
+    let errors: Vec<Option<ObjectErrors>> = scores.iter().map(|c| c.object).collect();
+    Some(ObjectScore::with_width(&errors, width))
 }
 
 /// Reads the cases under `cases_dir` and every result file, and scores them.
@@ -663,13 +712,20 @@ fn fmt_sci(v: f64) -> String {
 }
 
 /// The markdown table of one case set: the paper's accuracies and mAP, AUC, medians, failure
-/// counts and the median time per registration, one row per method. Explains the columns.
+/// counts and the median time per registration, one row per method; with the object metrics
+/// (ADD-S < 0.1·d, AR_MSSD, AR_MSPD) when a method has them. Explains the columns.
 pub fn markdown_cases_table(scores: &[MethodScore]) -> String {
+    let object = scores.iter().any(|m| m.object.is_some());
     let mut s = String::from(
         "| method | cases | failed | rot. median (°) | acc@5° | acc@10° | acc@15° | mAP@15° | AUC@15° \
-         | ‖Δt‖² median | acc@1e-3 | acc@5e-3 | acc@1e-2 | mAP@1e-2 | median s |\n\
-         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+         | ‖Δt‖² median | acc@1e-3 | acc@5e-3 | acc@1e-2 | mAP@1e-2 |",
     );
+    s.push_str(if object {
+        " ADD-S < 0.1·d | AR_MSSD | AR_MSPD | median s |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+    } else {
+        " median s |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+    });
     for m in scores {
         let sm = &m.result.summary;
         let acc = |v: &[(f64, f64)]| {
@@ -678,8 +734,20 @@ pub fn markdown_cases_table(scores: &[MethodScore]) -> String {
                 .collect::<Vec<_>>()
                 .join(" | ")
         };
+        let objects = if !object {
+            String::new()
+        } else if let Some(o) = &m.object {
+            format!(
+                " {:.3} | {:.3} | {} |",
+                o.add_s_01d,
+                o.ar_mssd,
+                o.ar_mspd.map_or("–".into(), |v| format!("{v:.3}"))
+            )
+        } else {
+            " – | – | – |".into()
+        };
         s.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {:.3} | {:.3} | {} | {} | {:.3} | {} |\n",
+            "| {} | {} | {} | {} | {} | {:.3} | {:.3} | {} | {} | {:.3} |{objects} {} |\n",
             m.result.method,
             sm.count,
             m.failed + m.missing,
@@ -703,6 +771,17 @@ pub fn markdown_cases_table(scores: &[MethodScore]) -> String {
          [0, 15°], normalised to [0, 1]. Failed: no pose, an invalid pose or no result line; \
          a failure counts as 180° and ∞ in every column. Median s: over the scored cases.\n",
     );
+    if object {
+        s.push_str(
+            "ADD-S < 0.1·d: share of cases whose ADD-S (mean distance from each model point \
+             under the estimate to the nearest under the truth) is below a tenth of the \
+             object's diameter. AR_MSSD, AR_MSPD: BOP's recalls (Hodaň et al. 2020), the mean \
+             over τ = 0.05…0.50·d of the share with MSSD < τ, and over τ = 5…50 px (× width / \
+             640) of the share with MSPD < τ; both the largest model-point distance (3D, or \
+             projected in the image), minimised over the object's symmetries. A failure is \
+             wrong at every threshold.\n",
+        );
+    }
     s
 }
 
@@ -820,6 +899,52 @@ mod tests {
         );
         assert!(table.contains("| b | 3 | 2 | 180.00 |"), "{table}");
         assert!(table.contains("Yi et al. 2018"));
+    }
+
+    /// With geometry on every case, a method gets ADD-S / AR_MSSD / AR_MSPD (a failure wrong
+    /// at every threshold) and the table grows their columns; one case without geometry and
+    /// there are none.
+    #[test]
+    fn cases_with_geometry_get_the_object_metrics_and_their_columns() {
+        use crate::object_scores::CaseGeometry;
+        let pts: Vec<ic_geometry::glam::Vec3> = (0..8)
+            .map(|i| {
+                ic_geometry::glam::Vec3::new(
+                    (i & 1) as f32 - 0.5,
+                    ((i >> 1) & 1) as f32 - 0.5,
+                    ((i >> 2) & 1) as f32 * 0.5 - 0.25,
+                )
+            })
+            .collect();
+        let half = Pose::from_axis_angle(DVec3::Z, std::f64::consts::PI, DVec3::ZERO);
+        let geometry = Arc::new(CaseGeometry::new(
+            pts,
+            vec![half],
+            Some(ic_geometry::Intrinsics::KINECT_640X480),
+        ));
+        let at = Pose::from_translation(DVec3::new(0.0, 0.0, 3.0));
+        let mut truths = vec![CaseTruth::new("a", at), CaseTruth::new("b", at)];
+        for t in &mut truths {
+            t.geometry = Some(geometry.clone());
+        }
+        // "a": off by the symmetry (180° in rotation, exact in every object metric); "b" fails.
+        let lines = [
+            ResultLine::from_pose("a", "m", &at.compose(&half), 0.1),
+            ResultLine::failed("b", "m", "no pose", 0.1),
+        ];
+        let scores = score_results(&truths, &lines).unwrap();
+        let o = scores[0].object.as_ref().unwrap();
+        assert_eq!(o.cases, 2);
+        assert!((o.add_s_01d - 0.5).abs() < 1e-12 && (o.ar_mssd - 0.5).abs() < 1e-12);
+        assert!((o.ar_mspd.unwrap() - 0.5).abs() < 1e-12);
+        assert!(scores[0].result.rotation_errors_deg[0] > 179.0);
+        let table = markdown_cases_table(&scores);
+        assert!(table.contains("| AR_MSSD |"), "{table}");
+        assert!(table.contains("| 0.500 | 0.500 | 0.500 |"), "{table}");
+        truths[1].geometry = None;
+        let scores = score_results(&truths, &lines).unwrap();
+        assert!(scores[0].object.is_none());
+        assert!(!markdown_cases_table(&scores).contains("AR_MSSD"));
     }
 
     #[test]

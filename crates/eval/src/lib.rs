@@ -30,6 +30,7 @@ pub mod cases;
 pub mod errors;
 pub mod instances;
 pub mod metrics;
+pub mod object_scores;
 pub mod plot;
 pub mod report;
 

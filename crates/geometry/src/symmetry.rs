@@ -18,6 +18,8 @@
 //! `CONTINUOUS_STEP_DEG` passes is a continuous symmetry axis, and its steps join the set.
 //! Every random choice comes from `options.seed`.
 
+use std::sync::atomic::{AtomicU64, Ordering};
+
 use glam::{DMat3, DVec3, Vec3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -171,9 +173,19 @@ pub fn find_symmetries(
             [2usize, 3, 4, 5, 6, 8].map(|n| about(centre, *axis, std::f64::consts::TAU / n as f64))
         })
         .collect();
+    // Only the residuals up to the refinement cut, and the smallest of all, are needed: a
+    // candidate is dropped as soon as it is known to be above both (the running minimum is
+    // shared between threads; non-negative floats order like their bits).
+    let cut = COARSE_FACTOR * threshold;
+    let best = AtomicU64::new(f64::INFINITY.to_bits());
     let mut coarse: Vec<(f64, Pose)> = candidates
         .into_par_iter()
-        .map(|m| (scorer.residual(&m), m))
+        .filter_map(|m| {
+            let bound = cut.max(f64::from_bits(best.load(Ordering::Relaxed)));
+            let r = scorer.residual_within(&m, bound)?;
+            best.fetch_min(r.to_bits(), Ordering::Relaxed);
+            Some((r, m))
+        })
         .collect();
     coarse.sort_by(|a, b| a.0.total_cmp(&b.0));
     // Every candidate turns by 45° or more: the best of them bounds how near the model came.
@@ -219,7 +231,9 @@ pub fn find_symmetries(
         }
         let all_pass = (1..steps).all(|k| {
             let angle = (k as f64 * CONTINUOUS_STEP_DEG).to_radians();
-            scorer.residual(&about(through, axis, angle)) <= threshold
+            scorer
+                .residual_within(&about(through, axis, angle), threshold)
+                .is_some()
         });
         if all_pass {
             continuous_axes.push(axis);
@@ -277,6 +291,29 @@ impl Scorer<'_> {
         let k = (d.len() * 9 / 10).min(d.len() - 1);
         let (_, v, _) = d.select_nth_unstable_by(k, f32::total_cmp);
         *v as f64 / self.diameter
+    }
+
+    /// [`Scorer::residual`] when it is at most `bound`, else `None` — found without scoring
+    /// every point once more than a tenth of them lie beyond the bound.
+    fn residual_within(&self, motion: &Pose, bound: f64) -> Option<f64> {
+        let n = self.test.len();
+        let k = (n * 9 / 10).min(n - 1);
+        let mut d: Vec<f32> = Vec::with_capacity(n);
+        let mut above = 0;
+        for &p in self.test {
+            let x = self.tree.nearest(motion.apply_f32(p)).distance;
+            if x as f64 / self.diameter > bound {
+                above += 1;
+                // At most k points at or below the bound: the k-th smallest is above it.
+                if above >= n - k {
+                    return None;
+                }
+            }
+            d.push(x);
+        }
+        let (_, v, _) = d.select_nth_unstable_by(k, f32::total_cmp);
+        let r = *v as f64 / self.diameter;
+        (r <= bound).then_some(r)
     }
 }
 
@@ -336,6 +373,39 @@ mod tests {
             axes: 200,
             ..SymmetryOptions::default()
         }
+    }
+
+    /// The early-exit residual is the residual whenever it is within the bound, and `None`
+    /// exactly when it is not (the oracle: the full residual), over many motions and bounds.
+    #[test]
+    fn the_bounded_residual_is_the_residual_or_says_it_is_above_the_bound() {
+        let mesh = shapes::box_mesh(Vec3::new(1.0, 0.6, 0.3)).unwrap();
+        let test = sample_surface_uniform(&mesh, 300, 1).unwrap().points;
+        let reference = sample_surface_uniform(&mesh, 2400, 2).unwrap().points;
+        let scorer = Scorer {
+            test: &test,
+            tree: KdTree::new(&reference).unwrap(),
+            diameter: sample_diameter(&test),
+        };
+        let mut checked = (0, 0);
+        for (i, axis) in fibonacci_sphere(40).into_iter().enumerate() {
+            let m = about(DVec3::ZERO, axis, 0.3 + 0.2 * i as f64);
+            let full = scorer.residual(&m);
+            for bound in [0.0, 0.01, 0.05, 0.1, 0.2, 0.5, full, f64::INFINITY] {
+                match scorer.residual_within(&m, bound) {
+                    Some(r) => {
+                        assert_eq!(r, full);
+                        checked.0 += 1;
+                    }
+                    None => {
+                        assert!(full > bound, "{full} ≤ {bound} but None");
+                        checked.1 += 1;
+                    }
+                }
+            }
+        }
+        // Both outcomes were exercised.
+        assert!(checked.0 > 20 && checked.1 > 20, "{checked:?}");
     }
 
     #[test]

@@ -27,6 +27,7 @@ pub mod cases;
 pub mod common;
 pub mod report;
 pub mod run;
+pub mod scenes;
 pub mod speed;
 
 use std::path::{Path, PathBuf};
@@ -86,6 +87,23 @@ pub struct BenchArgs {
     /// Room scenes (default 300, quick 10).
     #[arg(long)]
     pub room_count: Option<u64>,
+    /// Real-object views (default 500, quick 10; 0 skips the set).
+    #[arg(long)]
+    pub real_count: Option<u64>,
+    /// Clutter scenes of the real objects' test split (default 300, quick 3; 0 skips them):
+    /// the clutter segmentation's instances and `register`'s default on every target.
+    #[arg(long)]
+    pub clutter_count: Option<u64>,
+    /// Folder of real sensor frames (subfolders with model.ply, camera.json and depth PNGs),
+    /// each registered and judged against its depth map. Default: ../shared/data/real next to
+    /// the workspace, skipped when absent.
+    #[arg(long)]
+    pub frames: Option<PathBuf>,
+    /// Folder of real object meshes with its `split.json` (train / val / test) for the real
+    /// set and the clutter scenes. Default: ../shared/data/objects/real_objects next to the workspace; the set is
+    /// skipped, with a note in the report, when it is absent.
+    #[arg(long)]
+    pub real_objects: Option<PathBuf>,
     /// Threads for every method, ours and Open3D's, and for the timings.
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
@@ -95,7 +113,8 @@ pub struct BenchArgs {
     /// Timed training steps per head (default 5, quick 1).
     #[arg(long)]
     pub train_steps: Option<usize>,
-    /// The incontext binary. Default: `cargo build -p incontext`, then target/debug/incontext.
+    /// The incontext binary. Default: `cargo build --release -p incontext`, then
+    /// target/release/incontext (with --quick: the dev build, target/debug/incontext).
     #[arg(long)]
     pub incontext: Option<PathBuf>,
     /// Python with open3d and opencv-contrib-python-headless. Default:
@@ -143,6 +162,29 @@ fn default_objects(root: &Path, given: Option<&Path>, quick: bool) -> Result<Obj
     )
 }
 
+/// The real set's objects: `given` (an error when it is not a folder with `split.json`), else
+/// the shared folder when present; `None` skips the set.
+fn real_objects(root: &Path, given: Option<&Path>) -> Result<Option<Objects>> {
+    let dir = given
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| root.join("../shared/data/objects/real_objects"));
+    let split_file = dir.join("split.json");
+    if dir.is_dir() && split_file.is_file() {
+        let dir = dir.canonicalize().unwrap_or(dir);
+        return Ok(Some(Objects::SplitFile {
+            split_file: dir.join("split.json"),
+            dir,
+        }));
+    }
+    if given.is_some() {
+        bail!(
+            "--real-objects {}: not a folder holding split.json",
+            dir.display()
+        );
+    }
+    Ok(None)
+}
+
 pub fn run(args: BenchArgs) -> Result<()> {
     if args.criterion || !args.names.is_empty() {
         return crate::criterion_bench(&args.names);
@@ -154,6 +196,12 @@ pub fn run(args: BenchArgs) -> Result<()> {
     let root = crate::workspace_root();
     let quick = args.quick;
     let objects = default_objects(&root, args.objects.as_deref(), quick)?;
+    let real_count = args.real_count.unwrap_or(if quick { 10 } else { 500 });
+    let real = if real_count > 0 {
+        real_objects(&root, args.real_objects.as_deref())?
+    } else {
+        None
+    };
     let work = args.work.clone().unwrap_or_else(|| {
         root.join(if quick {
             "target/bench-quick"
@@ -172,6 +220,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
         seed: args.seed,
         noback_count: args.noback_count.unwrap_or(if quick { 20 } else { 500 }),
         room_count: args.room_count.unwrap_or(if quick { 10 } else { 300 }),
+        real_count: if real.is_some() { real_count } else { 0 },
+        real_objects: real.as_ref().map(Objects::describe),
         ppf_cases: args.ppf_cases.unwrap_or(if quick { 3 } else { 100 }),
         ppf_repeats: args
             .ppf_repeats
@@ -198,14 +248,39 @@ pub fn run(args: BenchArgs) -> Result<()> {
 
     // 1. Cases.
     let mut sets: Vec<CaseSet> = Vec::new();
+    if real.is_none() {
+        report.notes.push(if real_count == 0 {
+            "The real-object set was not run (--real-count 0).".into()
+        } else {
+            format!(
+                "The real-object set was skipped: {} is not there (pass --real-objects DIR, a \
+                 folder of meshes with split.json).",
+                root.join("../shared/data/objects/real_objects").display()
+            )
+        });
+    }
+    // The objects of each set.
+    let set_objects = |set: Set| -> Option<&Objects> {
+        match set {
+            Set::Real => real.as_ref(),
+            _ => Some(&objects),
+        }
+    };
+    let mut geometry = std::collections::HashMap::new();
     for set in Set::ALL {
+        let Some(set_objs) = set_objects(set) else {
+            continue;
+        };
         let count = match set {
             Set::Noback => config.noback_count,
             Set::Room => config.room_count,
+            Set::Real => config.real_count,
         };
         let t0 = Instant::now();
         let dir = work.join(format!("cases-{}", set.name()));
-        let cs = cases::ensure(set, &objects, config.seed, count, &dir, config.threads)?;
+        let cs = cases::ensure(set, set_objs, config.seed, count, &dir, config.threads)?;
+        let cache = work.join(format!("symmetries-{}.json", set.name()));
+        geometry.insert(set, cases::geometry(&cs, set_objs, config.seed, &cache)?);
         report.stage(&format!("cases {}", set.name()), t0.elapsed().as_secs_f64());
         sets.push(cs);
     }
@@ -213,7 +288,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
     // 2. Ours.
     let mut runs: Vec<MethodRun> = Vec::new();
     let t0 = Instant::now();
-    let cli = run::probe_cli(&root, args.incontext.as_deref());
+    let cli = run::probe_cli(&root, args.incontext.as_deref(), !quick);
     if let Some(why) = &cli.unusable {
         tracing::warn!("our methods will be reported as missing: {why}");
     }
@@ -229,11 +304,53 @@ pub fn run(args: BenchArgs) -> Result<()> {
             config.resume,
         )?);
     }
+    report.stage("ours", t0.elapsed().as_secs_f64());
+
+    // 2b. Whole scenes: clutter, real frames.
+    let t0 = Instant::now();
+    let clutter_count = args.clutter_count.unwrap_or(if quick { 3 } else { 300 });
+    match (&real, clutter_count) {
+        (_, 0) => report
+            .notes
+            .push("The clutter scenes were not run (--clutter-count 0).".into()),
+        (None, _) => report.notes.push(
+            "The clutter scenes were skipped: they are made of the real objects, which are \
+             not there (--real-objects)."
+                .into(),
+        ),
+        (Some(r), n) => {
+            report.clutter = Some(scenes::clutter(
+                &root,
+                &cli,
+                r,
+                config.seed,
+                n,
+                &work,
+                config.threads,
+                config.resume,
+            )?)
+        }
+    }
+    let frames_dir = args
+        .frames
+        .clone()
+        .unwrap_or_else(|| root.join("../shared/data/real"));
+    if frames_dir.is_dir() {
+        report.frames =
+            scenes::frames(&root, &cli, &frames_dir, config.seed, &work, config.threads)?;
+    } else if args.frames.is_some() {
+        bail!("--frames {}: not a folder", frames_dir.display());
+    } else {
+        report.notes.push(format!(
+            "The real frames were skipped: {} is not there (--frames).",
+            frames_dir.display()
+        ));
+    }
     report.cli = Some(run::Cli {
         path: rel(&cli.path),
         ..cli
     });
-    report.stage("ours", t0.elapsed().as_secs_f64());
+    report.stage("scenes", t0.elapsed().as_secs_f64());
 
     // 3. Peers.
     let mut python = None;
@@ -291,11 +408,14 @@ pub fn run(args: BenchArgs) -> Result<()> {
                     } else {
                         config.ppf_cases
                     };
+                    let Some(set_objs) = set_objects(cs.set) else {
+                        continue;
+                    };
                     runs.extend(run::run_ppf(
                         &root,
                         &py,
                         cs,
-                        &objects,
+                        set_objs,
                         &dir,
                         limit,
                         config.threads,
@@ -350,6 +470,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
     if config.speed {
         let t0 = Instant::now();
         let (noback, room) = (&sets[0], &sets[1]);
+        debug_assert!(noback.set == Set::Noback && room.set == Set::Room);
         report.speed = Some(speed::measure(
             &root,
             noback,
@@ -404,7 +525,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
 
     // 5. Score and write.
     let t0 = Instant::now();
-    report.score(&sets, runs)?;
+    report.score(&sets, runs, &geometry)?;
     report.stage("score", t0.elapsed().as_secs_f64());
     report.total_seconds = started.elapsed().as_secs_f64();
     // results.md (with its plots), then results.json; listed md, json, plots.

@@ -38,6 +38,24 @@ pub const PEER_METHODS: [&str; 5] = [
 /// `--ppf-cases` cases of each set only.
 pub const PPF_METHODS: [&str; 3] = ["ppf", "ppf-icp", "ppf-tuned"];
 
+/// Our methods on a set: [`OUR_METHODS`], and on the real views also the one-shot rotation
+/// sweep (the real-objects issue's one-shot figure).
+pub fn our_methods(set: Set) -> &'static [(&'static str, &'static str)] {
+    const REAL: [(&str, &str); 7] = [
+        ("ours-softmax", "softmax"),
+        ("ours-softmax-icp", "softmax"),
+        ("ours-softmax-sweep", "softmax"),
+        ("ours-softmax-verify", "softmax"),
+        ("ours-ot", "ot"),
+        ("ours-ot-icp", "ot"),
+        ("ours-ot-verify", "ot"),
+    ];
+    match set {
+        Set::Real => &REAL,
+        _ => &OUR_METHODS,
+    }
+}
+
 /// The shipped model a head uses, relative to the workspace root.
 pub fn pose_model(head: &str) -> PathBuf {
     PathBuf::from(format!("models/pose-cpu-{head}.safetensors"))
@@ -88,21 +106,42 @@ pub struct Cli {
     /// Whether the CLI takes the global `--seed` and `--threads`.
     pub seed_flag: bool,
     pub threads_flag: bool,
+    /// Whether `eval --cases` takes `--details` (each line's stage seconds).
+    pub details_flag: bool,
 }
 
-/// Builds (unless `given`) and probes the `incontext` binary.
-pub fn probe_cli(root: &Path, given: Option<&Path>) -> Cli {
+/// Builds (unless `given`; `release`: the release build, what users run, else the dev build
+/// the tests share) and probes the `incontext` binary.
+pub fn probe_cli(root: &Path, given: Option<&Path>, release: bool) -> Cli {
     let path = match given {
         Some(p) => p.to_path_buf(),
         None => {
-            let bin = root.join("target/debug/incontext");
-            if let Err(e) = crate::cargo(&["build", "-p", "incontext", "--bin", "incontext"]) {
+            let (bin, args): (_, &[&str]) = if release {
+                (
+                    root.join("target/release/incontext"),
+                    &[
+                        "build",
+                        "--release",
+                        "-p",
+                        "incontext",
+                        "--bin",
+                        "incontext",
+                    ],
+                )
+            } else {
+                (
+                    root.join("target/debug/incontext"),
+                    &["build", "-p", "incontext", "--bin", "incontext"],
+                )
+            };
+            if let Err(e) = crate::cargo(args) {
                 return Cli {
                     path: bin,
-                    unusable: Some(format!("`cargo build -p incontext` failed: {e:#}")),
+                    unusable: Some(format!("`cargo {}` failed: {e:#}", args.join(" "))),
                     gt_mask: false,
                     seed_flag: false,
                     threads_flag: false,
+                    details_flag: false,
                 };
             }
             bin
@@ -119,6 +158,7 @@ pub fn probe_cli(root: &Path, given: Option<&Path>) -> Cli {
             gt_mask: false,
             seed_flag: false,
             threads_flag: false,
+            details_flag: false,
         },
         Ok(o) => {
             let help = String::from_utf8_lossy(&o.stdout).into_owned()
@@ -135,6 +175,7 @@ pub fn probe_cli(root: &Path, given: Option<&Path>) -> Cli {
                 gt_mask: usable && help.contains("--gt-mask"),
                 seed_flag: help.contains("--seed"),
                 threads_flag: help.contains("--threads"),
+                details_flag: usable && help.contains("--details"),
                 path,
             }
         }
@@ -208,14 +249,16 @@ pub fn run_ours(
     resume: bool,
 ) -> Result<Vec<MethodRun>> {
     let mut out = Vec::new();
-    let variants: &[bool] = if cases.set == Set::Room {
-        &[false, true]
-    } else {
-        &[false]
+    // Room: the full pipeline and the upper bound; real views: the object's true mask, as the
+    // peers get its points.
+    let variants: &[bool] = match cases.set {
+        Set::Noback => &[false],
+        Set::Room => &[false, true],
+        Set::Real => &[true],
     };
     std::fs::create_dir_all(runs).with_context(|| format!("creating {}", runs.display()))?;
     for &gt_mask in variants {
-        for (method, head) in OUR_METHODS {
+        for &(method, head) in our_methods(cases.set) {
             let label = if gt_mask {
                 format!("{method} (gt mask)")
             } else {
@@ -284,6 +327,10 @@ pub fn run_ours(
                 .args(["--method", method])
                 .arg("--out")
                 .arg(&file);
+            if cli.details_flag {
+                // Each line's stage seconds, for the report's time split.
+                cmd.arg("--details");
+            }
             if gt_mask {
                 cmd.arg("--gt-mask");
             }
@@ -487,7 +534,7 @@ fn script_timing(
     progress: &str,
     cases: &CaseSet,
     out: &Path,
-    sizes: &[usize],
+    sizes: &[(usize, usize)],
     repeats: usize,
     threads: usize,
     seed: u64,
@@ -498,7 +545,7 @@ fn script_timing(
         .to_path_buf();
     let sizes_arg = sizes
         .iter()
-        .map(|s| s.to_string())
+        .map(|&s| crate::bench::speed::size_label(s))
         .collect::<Vec<_>>()
         .join(",");
     let mut cmd = Command::new(python);
@@ -558,7 +605,7 @@ pub fn run_peer_timing(
     python: &Path,
     cases: &CaseSet,
     out: &Path,
-    sizes: &[usize],
+    sizes: &[(usize, usize)],
     repeats: usize,
     threads: usize,
     seed: u64,
@@ -615,7 +662,9 @@ fn script_check(
 /// from, or (procedural objects have no mesh file) normals estimated on the model points.
 fn ppf_normals_args(objects: &Objects) -> Vec<String> {
     match objects {
-        Objects::Folder(dir) => vec!["--objects".into(), dir.display().to_string()],
+        Objects::Folder(dir) | Objects::SplitFile { dir, .. } => {
+            vec!["--objects".into(), dir.display().to_string()]
+        }
         Objects::Procedural(_) => vec!["--model-normals".into(), "estimate".into()],
     }
 }
@@ -667,7 +716,7 @@ pub fn run_ppf_timing(
     cases: &CaseSet,
     objects: &Objects,
     out: &Path,
-    sizes: &[usize],
+    sizes: &[(usize, usize)],
     repeats: usize,
     threads: usize,
     seed: u64,

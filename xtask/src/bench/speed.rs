@@ -1,10 +1,10 @@
 //! Stage 4 of `cargo xtask bench`: speed, measured in this process on this machine.
 //!
-//! - registration time of ours at 512/1024/2048 points (the paper's Table 3): the first
-//!   object-alone case's source and target resampled to n points each (random subset, or
-//!   repeats with 0.005 jitter when a cloud is smaller), `PoseEstimator::estimate` with and
-//!   without ICP, one warm-up then `repeats` runs — the same pair and protocol as the peers'
-//!   `--timing --cases` mode;
+//! - registration time of ours at the [`SIZES`] (the shipped preset's operating point, the
+//!   paper's Table 3 sizes and its 1024 × 768 inference size): the first object-alone case's
+//!   source and target resampled to m and n points (random subset, or repeats with 0.005 jitter
+//!   when a cloud is smaller), `PoseEstimator::estimate` with and without ICP, one warm-up then
+//!   `repeats` runs — the same pair and protocol as the peers' `--timing --cases` mode;
 //! - segmentation of one 640×480 depth map (the first room case);
 //! - CPU renderer views/s: a room scene at 640×480 and the object alone at 160×120;
 //! - training pairs/hour: a few real `Trainer::step`s of the `cpu` preset per head on samples
@@ -30,8 +30,25 @@ use serde::Serialize;
 use crate::bench::cases::{CaseSet, Objects};
 use crate::bench::run::{SEG_MODEL, pose_model};
 
-/// Sizes of the paper's Table 3.
-pub const SIZES: [usize; 3] = [512, 1024, 2048];
+/// (model, observed) point counts timed: the `cpu` preset's operating point (384 × 288, what
+/// `register` feeds the network), the paper's Table 3 sizes (n × n) and the paper's inference
+/// size (1024 × 768).
+pub const SIZES: [(usize, usize); 5] = [
+    (384, 288),
+    (512, 512),
+    (1024, 768),
+    (1024, 1024),
+    (2048, 2048),
+];
+
+/// How a size is written in tables and in the peers' `--points`: `n`, or `mxn`.
+pub fn size_label((m, n): (usize, usize)) -> String {
+    if m == n {
+        m.to_string()
+    } else {
+        format!("{m}x{n}")
+    }
+}
 
 /// A timed quantity: median and every run (seconds).
 #[derive(Clone, Debug, Serialize)]
@@ -48,7 +65,10 @@ pub struct Timed {
 #[derive(Clone, Debug, Serialize)]
 pub struct RegTiming {
     pub method: String,
+    /// Model points.
     pub points: usize,
+    /// Observed points.
+    pub observed_points: usize,
     #[serde(flatten)]
     pub timed: Timed,
 }
@@ -203,13 +223,18 @@ pub fn measure(
     let total = (SIZES.len() * 4 + 1 + 2 + 2) as u64;
     let bar = crate::bench::common::progress_bar(total, "speed");
 
-    // Registration at 512/1024/2048.
+    // Registration at each size.
     let mut ours = Vec::new();
     for head in [Head::Softmax, Head::Ot] {
         let (mut est, note) = estimator(root, head, seed)?;
-        for &n in &SIZES {
-            let mut rng = SplitMix(seed ^ (n as u64).wrapping_mul(0x1000_0001));
-            let x = resample(&source, n, &mut rng);
+        for &(m, n) in &SIZES {
+            let key = if m == n {
+                n as u64
+            } else {
+                (m as u64) << 32 | n as u64
+            };
+            let mut rng = SplitMix(seed ^ key.wrapping_mul(0x1000_0001));
+            let x = resample(&source, m, &mut rng);
             let y = resample(&target, n, &mut rng);
             for refine in [Refine::None, Refine::Icp] {
                 est.recovery.refine = refine;
@@ -218,7 +243,7 @@ pub fn measure(
                     head.as_str(),
                     if refine == Refine::Icp { "-icp" } else { "" }
                 );
-                bar.set_message(format!("{method} n={n}"));
+                bar.set_message(format!("{method} n={}", size_label((m, n))));
                 // A failed recovery (untrained weights can give degenerate matches) still ran
                 // the network: time it, and say so.
                 let mut failure = None;
@@ -235,10 +260,11 @@ pub fn measure(
                             + &format!("the pose recovery failed ({f}), the time still counts it"),
                     ),
                 };
-                tracing::info!(method, n, median = ?timed.median_seconds, "registration time");
+                tracing::info!(method, m, n, median = ?timed.median_seconds, "registration time");
                 ours.push(RegTiming {
                     method,
-                    points: n,
+                    points: m,
+                    observed_points: n,
                     timed,
                 });
                 bar.inc(1);

@@ -66,6 +66,10 @@ fn results_json(report: &Report) -> Result<Value> {
                         "translation_auc_1e2": m.translation_auc_1e2,
                         "translation_l2_median": m.translation_l2_median,
                         "seconds_median": m.result.seconds_median,
+                        "object": m.object,
+                        "add_s_rel": m.cases.iter().map(|c| c.object.map_or(Value::Null, |o| round_sig(o.add_s, 4))).collect::<Vec<_>>(),
+                        "mssd_rel": m.cases.iter().map(|c| c.object.map_or(Value::Null, |o| round_sig(o.mssd, 4))).collect::<Vec<_>>(),
+                        "mspd_px": m.cases.iter().map(|c| c.object.and_then(|o| o.mspd_px).map_or(Value::Null, |x| round_sig(x, 4))).collect::<Vec<_>>(),
                         "rotation_deg": m.result.rotation_errors_deg.iter().map(|&x| round_sig(x, 5)).collect::<Vec<_>>(),
                         "translation_sq": m.result.translation_sq_errors.iter().map(|&x| round_sig(x, 4)).collect::<Vec<_>>(),
                         "seconds": m.cases.iter().map(|c| c.seconds.map_or(Value::Null, |s| round_sig(s, 4))).collect::<Vec<_>>(),
@@ -80,6 +84,8 @@ fn results_json(report: &Report) -> Result<Value> {
                 "cases": set.cases,
                 "methods": methods,
                 "missing": set.missing,
+                "asymmetric_cases": set.asymmetric_cases,
+                "stage_split": set.stage_split,
             })
         })
         .collect();

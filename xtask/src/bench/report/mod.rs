@@ -11,9 +11,11 @@ pub mod markdown;
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use anyhow::Result;
 use ic_eval::cases::{MethodScore, ResultLine, read_case_truths, read_result_lines, score_results};
+use ic_eval::object_scores::CaseGeometry;
 use serde::Serialize;
 use serde_json::{Value, json};
 
@@ -31,6 +33,10 @@ pub struct Config {
     pub seed: u64,
     pub noback_count: u64,
     pub room_count: u64,
+    /// Real-object views (0: the set did not run).
+    pub real_count: u64,
+    /// The real set's objects, when it ran.
+    pub real_objects: Option<serde_json::Value>,
     /// OpenCV's PPF peers run on the first this many cases of each set (0: all).
     pub ppf_cases: u64,
     /// Timing repeats of the PPF peers.
@@ -55,6 +61,51 @@ pub struct SetReport {
     pub scores: Vec<MethodScore>,
     /// (label, reason) of methods without scores.
     pub missing: Vec<(String, String)>,
+    /// Cases whose object has no symmetry (found on its mesh): where the rotation accuracy
+    /// means what it says.
+    pub asymmetric_cases: Vec<String>,
+    /// Where our methods' time goes, from their lines' `details.stage_seconds`.
+    pub stage_split: Vec<StageSplit>,
+}
+
+/// The median seconds of each pipeline stage of one of our methods on one set.
+#[derive(Clone, Debug, Serialize)]
+pub struct StageSplit {
+    pub label: String,
+    /// Lines with stage seconds (the registrations that returned a pose).
+    pub cases: usize,
+    /// Stage name (`segmentation_network`, `pose_network`, `icp`, …, `total`) → median
+    /// seconds.
+    pub median_seconds: std::collections::BTreeMap<String, f64>,
+}
+
+/// The stage split of a result file of ours, when its lines carry `details.stage_seconds`.
+fn stage_split(label: &str, file: &Path) -> Option<StageSplit> {
+    let text = std::fs::read_to_string(file).ok()?;
+    let mut by_stage: std::collections::BTreeMap<String, Vec<f64>> = Default::default();
+    let mut cases = 0;
+    for line in text.lines().filter(|l| !l.trim().is_empty()) {
+        let Ok(v) = serde_json::from_str::<Value>(line) else {
+            continue;
+        };
+        let Some(stages) = v["details"]["stage_seconds"].as_object() else {
+            continue;
+        };
+        cases += 1;
+        for (k, x) in stages {
+            if let Some(x) = x.as_f64().filter(|x| x.is_finite()) {
+                by_stage.entry(k.clone()).or_default().push(x);
+            }
+        }
+    }
+    (cases > 0).then(|| StageSplit {
+        label: label.to_string(),
+        cases,
+        median_seconds: by_stage
+            .into_iter()
+            .map(|(k, v)| (k, ic_eval::median(&v)))
+            .collect(),
+    })
 }
 
 /// Everything results.md and results.json are made of.
@@ -78,6 +129,10 @@ pub struct Report {
     pub open3d_timing: Option<Value>,
     /// `ppf_peers.py --timing`'s JSON.
     pub ppf_timing: Option<Value>,
+    /// The clutter benchmark, when it ran.
+    pub clutter: Option<crate::bench::scenes::ClutterReport>,
+    /// The real frames, one folder each.
+    pub frames: Vec<crate::bench::scenes::FramesReport>,
     pub total_seconds: f64,
 }
 
@@ -91,6 +146,7 @@ impl Report {
             pose_model("softmax"),
             pose_model("ot"),
             PathBuf::from(SEG_MODEL),
+            PathBuf::from(crate::bench::scenes::CLUTTER_SEG_MODEL),
         ]
         .iter()
         .map(|m| {
@@ -118,6 +174,8 @@ impl Report {
             speed: None,
             open3d_timing: None,
             ppf_timing: None,
+            clutter: None,
+            frames: Vec::new(),
             total_seconds: 0.0,
         }
     }
@@ -133,10 +191,22 @@ impl Report {
 
     /// Scores every run that produced a file; a file that cannot be read or scored turns that
     /// method into a missing one with the reason (the others are still reported).
-    pub fn score(&mut self, sets: &[CaseSet], runs: Vec<MethodRun>) -> Result<()> {
+    ///
+    /// `geometry` (by set, then case name) gives the cases their object metrics.
+    pub fn score(
+        &mut self,
+        sets: &[CaseSet],
+        runs: Vec<MethodRun>,
+        geometry: &HashMap<Set, HashMap<String, Arc<CaseGeometry>>>,
+    ) -> Result<()> {
         let mut files: HashMap<PathBuf, Result<Vec<ResultLine>, String>> = HashMap::new();
         for cs in sets {
-            let truths = read_case_truths(&cs.dir)?;
+            let mut truths = read_case_truths(&cs.dir)?;
+            if let Some(g) = geometry.get(&cs.set) {
+                for t in &mut truths {
+                    t.geometry = g.get(&t.case).cloned();
+                }
+            }
             let mut report = SetReport {
                 set: cs.set,
                 count: cs.count,
@@ -144,6 +214,12 @@ impl Report {
                 cases: cs.cases.clone(),
                 scores: Vec::new(),
                 missing: Vec::new(),
+                asymmetric_cases: truths
+                    .iter()
+                    .filter(|t| t.geometry.as_ref().is_some_and(|g| g.symmetries.is_empty()))
+                    .map(|t| t.case.clone())
+                    .collect(),
+                stage_split: Vec::new(),
             };
             for run in runs.iter().filter(|r| r.set == cs.set) {
                 let file = match &run.status {
@@ -187,6 +263,11 @@ impl Report {
                     ));
                     continue;
                 }
+                if !run.peer
+                    && let Some(split) = stage_split(&run.label, file)
+                {
+                    report.stage_split.push(split);
+                }
                 // The slow peers ran on the first cases only: score them on those.
                 let n = run
                     .case_limit
@@ -203,21 +284,23 @@ impl Report {
         Ok(())
     }
 
-    pub(super) fn open3d_median(&self, method: &str, points: usize) -> Option<f64> {
-        timing_median(self.open3d_timing.as_ref()?, method, points)
+    pub(super) fn open3d_median(&self, method: &str, size: (usize, usize)) -> Option<f64> {
+        timing_median(self.open3d_timing.as_ref()?, method, size)
     }
 
-    pub(super) fn ppf_median(&self, method: &str, points: usize) -> Option<f64> {
-        timing_median(self.ppf_timing.as_ref()?, method, points)
+    pub(super) fn ppf_median(&self, method: &str, size: (usize, usize)) -> Option<f64> {
+        timing_median(self.ppf_timing.as_ref()?, method, size)
     }
 }
 
-/// The median seconds of `method` at `points` in a peers' script's timing JSON.
-fn timing_median(timing: &Value, method: &str, points: usize) -> Option<f64> {
-    timing["results"]
-        .as_array()?
-        .iter()
-        .find(|r| r["method"] == method && r["points"].as_u64() == Some(points as u64))?
-        ["median_seconds"]
+/// The median seconds of `method` at (model, observed) points in a peers' script's timing
+/// JSON (a record without `observed_points` is square).
+fn timing_median(timing: &Value, method: &str, (m, n): (usize, usize)) -> Option<f64> {
+    timing["results"].as_array()?.iter().find(|r| {
+        let points = r["points"].as_u64();
+        r["method"] == method
+            && points == Some(m as u64)
+            && r["observed_points"].as_u64().or(points) == Some(n as u64)
+    })?["median_seconds"]
         .as_f64()
 }

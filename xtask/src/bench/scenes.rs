@@ -1,0 +1,275 @@
+//! Stage 2b of `cargo xtask bench`: whole scenes, where the object is to be found before it is
+//! registered.
+//!
+//! - **Clutter** (the real-clutter issue's benchmark): `--clutter-count` scenes of the
+//!   `real_objects` test objects (tables, bins and shelves with 3–15 objects, the sensor model
+//!   on; `ic_data::clutter` as `gen-data --clutter-count` writes them, a BOP dataset under
+//!   `<work>/clutter-data/`). The shipped clutter segmentation network is scored on every
+//!   object's instance (`ic_train::seg::scene_instances`: target found, recall, matched IoU,
+//!   over- and under-segmentation), and `incontext eval --dataset` runs `register`'s default
+//!   method on every target (ADD-S to the nearest true instance, rotation, time).
+//! - **Real frames** (`../shared/data/real/*/`, no ground truth): `incontext eval --frames`
+//!   registers each frame as `register` and `register --all` do and judges each pose by
+//!   rendering it against the depth map (agreement within 10 mm, pixels in front).
+//!
+//! Nothing here is a case folder: the results are the commands' own summaries, kept as JSON.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use ic_data::clutter::{ClutterConfig, ClutterGenerator};
+use ic_data::{Corpus, Split};
+use serde_json::{Value, json};
+
+use crate::bench::cases::Objects;
+use crate::bench::run::Cli;
+
+/// The clutter segmentation network the pipeline runs by default.
+pub const CLUTTER_SEG_MODEL: &str = "models/seg-clutter.safetensors";
+
+/// The method of the clutter benchmark: `register`'s default.
+pub const CLUTTER_METHOD: &str = "ours-softmax-verify";
+
+/// The scenes of the benchmark: `gen-data --clutter-count`'s (the target's copies listed,
+/// every object's full mask kept, objects at their fixed real sizes).
+fn clutter_config() -> ClutterConfig {
+    ClutterConfig {
+        fixed_sizes: true,
+        full_masks: true,
+        ..ClutterConfig::default()
+    }
+}
+
+/// The clutter benchmark's results.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct ClutterReport {
+    pub scenes: u64,
+    pub dir: PathBuf,
+    /// `ic_eval::instances::InstanceSummary` of the clutter network, or why it is missing.
+    pub segmentation: Result<Value, String>,
+    /// The `incontext --json eval --dataset` report (its `datasets.clutter.results`), or why
+    /// it is missing.
+    pub pipeline: Result<Value, String>,
+    pub seconds: f64,
+}
+
+/// One folder of real frames and `incontext eval --frames`' summary.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct FramesReport {
+    pub name: String,
+    pub dir: PathBuf,
+    pub summary: Result<Value, String>,
+}
+
+fn read_json(path: &Path) -> Option<Value> {
+    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
+}
+
+/// `incontext` with the bench's seed and threads.
+fn incontext(root: &Path, cli: &Cli, seed: u64, threads: usize) -> Command {
+    let mut cmd = Command::new(&cli.path);
+    cmd.current_dir(root)
+        .env("RAYON_NUM_THREADS", threads.to_string())
+        .stdin(Stdio::null());
+    cmd.args(["--json", "--seed", &seed.to_string()]);
+    cmd.args(["--threads", &threads.to_string()]);
+    cmd
+}
+
+/// Runs `cmd`, its stderr to `log`; its stdout parsed as JSON.
+fn run_json(mut cmd: Command, log: &Path) -> Result<Value, String> {
+    let err = std::fs::File::create(log).map_err(|e| format!("{}: {e}", log.display()))?;
+    let out = cmd
+        .stderr(err)
+        .output()
+        .map_err(|e| format!("cannot start {:?}: {e}", cmd.get_program()))?;
+    if !out.status.success() {
+        let tail: String = std::fs::read_to_string(log)
+            .unwrap_or_default()
+            .lines()
+            .rev()
+            .take(5)
+            .collect::<Vec<_>>()
+            .join(" / ");
+        return Err(format!("exit {}: {tail}", out.status));
+    }
+    serde_json::from_slice(&out.stdout).map_err(|e| format!("its JSON on stdout: {e}"))
+}
+
+/// Writes (or reuses: the same manifest) the clutter scenes as a BOP dataset under `dir`.
+fn ensure_clutter_data(
+    objects: &Objects,
+    seed: u64,
+    count: u64,
+    dir: &Path,
+    workers: usize,
+) -> Result<()> {
+    let Objects::SplitFile {
+        dir: meshes,
+        split_file,
+    } = objects
+    else {
+        bail!("the clutter scenes need a mesh folder with split.json");
+    };
+    let want = json!({"seed": seed, "count": count, "objects": objects.describe(), "config": clutter_config()});
+    if read_json(&dir.join("bench-manifest.json")).as_ref() == Some(&want)
+        && dir.join("clutter/test_targets_bop19.json").is_file()
+    {
+        tracing::info!(dir = %dir.display(), "reusing the clutter scenes");
+        return Ok(());
+    }
+    let partial = crate::bench::cases::sibling(dir, "partial");
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial)
+            .with_context(|| format!("removing {}", partial.display()))?;
+    }
+    crate::data::gen_data(crate::data::GenDataArgs {
+        corpus: crate::data::CorpusArgs {
+            objects: Some(meshes.clone()),
+            split: "test".into(),
+            train_ids: "0-799".into(),
+            test_ids: "800-999".into(),
+            split_file: Some(split_file.clone()),
+            procedural: 0,
+            strict: false,
+        },
+        out: partial.clone(),
+        seed,
+        noback_count: 0,
+        room_count: 0,
+        clutter_count: count,
+        workers: Some(workers),
+    })?;
+    crate::bench::common::write_atomic(
+        &partial.join("bench-manifest.json"),
+        serde_json::to_string_pretty(&want)?.as_bytes(),
+    )?;
+    if dir.exists() {
+        std::fs::remove_dir_all(dir).with_context(|| format!("removing {}", dir.display()))?;
+    }
+    std::fs::rename(&partial, dir)
+        .with_context(|| format!("renaming {} to {}", partial.display(), dir.display()))?;
+    Ok(())
+}
+
+/// The clutter network's instances against every object's on the same scenes.
+fn clutter_segmentation(root: &Path, corpus: Arc<Corpus>, seed: u64, count: u64) -> Result<Value> {
+    let seg = ic_seg::Segmenter::load(&root.join(CLUTTER_SEG_MODEL))
+        .with_context(|| format!("loading {CLUTTER_SEG_MODEL}"))?;
+    let g = ClutterGenerator::new(corpus, clutter_config(), seed)?;
+    let bar = crate::bench::common::progress_bar(count, "clutter segmentation");
+    let mut matches = Vec::new();
+    for i in 0..count {
+        let scene = g.scene(i)?;
+        matches.push(ic_train::seg::scene_instances(&seg, &scene)?);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    Ok(serde_json::to_value(ic_eval::instances::summarise(
+        &matches,
+    ))?)
+}
+
+/// The clutter benchmark (see the module documentation). A part that cannot run is reported
+/// with the reason; only the scenes' export is fatal.
+#[allow(clippy::too_many_arguments)]
+pub fn clutter(
+    root: &Path,
+    cli: &Cli,
+    objects: &Objects,
+    seed: u64,
+    count: u64,
+    work: &Path,
+    threads: usize,
+    resume: bool,
+) -> Result<ClutterReport> {
+    let t0 = Instant::now();
+    let dir = work.join("clutter-data");
+    ensure_clutter_data(objects, seed, count, &dir, threads)?;
+    let segmentation = if root.join(CLUTTER_SEG_MODEL).is_file() {
+        let corpus = Arc::new(objects.corpus(Split::Test, seed)?);
+        clutter_segmentation(root, corpus, seed, count).map_err(|e| format!("{e:#}"))
+    } else {
+        Err(format!("{CLUTTER_SEG_MODEL} is absent"))
+    };
+    let runs = work.join("runs/clutter");
+    let saved = work.join("runs/clutter.json");
+    let pipeline = match (&cli.unusable, resume.then(|| read_json(&saved)).flatten()) {
+        (Some(why), _) => Err(why.clone()),
+        (None, Some(v)) => {
+            tracing::info!(file = %saved.display(), "reusing the clutter pipeline's results");
+            Ok(v)
+        }
+        (None, None) => {
+            std::fs::create_dir_all(work.join("runs"))?;
+            eprintln!("== clutter: incontext eval --dataset ({count} scenes, {CLUTTER_METHOD})");
+            let mut cmd = incontext(root, cli, seed, threads);
+            cmd.arg("eval")
+                .arg("--dataset")
+                .arg(dir.join("clutter"))
+                .args(["--method", CLUTTER_METHOD])
+                .arg("--out")
+                .arg(&runs);
+            let r = run_json(cmd, &work.join("runs/clutter.log"));
+            if let Ok(v) = &r {
+                crate::bench::common::write_atomic(&saved, serde_json::to_string(v)?.as_bytes())?;
+            }
+            r
+        }
+    };
+    Ok(ClutterReport {
+        scenes: count,
+        dir: crate::bench::common::rel(&dir),
+        segmentation,
+        pipeline,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
+
+/// `incontext eval --frames` on every folder of `real` holding `model.ply` (sorted by name).
+pub fn frames(
+    root: &Path,
+    cli: &Cli,
+    real: &Path,
+    seed: u64,
+    work: &Path,
+    threads: usize,
+) -> Result<Vec<FramesReport>> {
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(real)
+        .with_context(|| format!("listing {}", real.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.join("model.ply").is_file())
+        .collect();
+    dirs.sort();
+    let mut out = Vec::new();
+    for dir in dirs {
+        let name = dir
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let summary = match &cli.unusable {
+            Some(why) => Err(why.clone()),
+            None => {
+                eprintln!("== frames {name}: incontext eval --frames");
+                let out_dir = work.join("runs").join(format!("frames-{name}"));
+                std::fs::create_dir_all(work.join("runs"))?;
+                let mut cmd = incontext(root, cli, seed, threads);
+                cmd.arg("eval")
+                    .arg("--frames")
+                    .arg(&dir)
+                    .arg("--out")
+                    .arg(&out_dir);
+                run_json(cmd, &work.join("runs").join(format!("frames-{name}.log")))
+            }
+        };
+        out.push(FramesReport {
+            name,
+            dir: dir.clone(),
+            summary,
+        });
+    }
+    Ok(out)
+}
