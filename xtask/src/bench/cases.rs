@@ -105,6 +105,16 @@ impl Objects {
         }
     }
 
+    /// A short name for files cached per corpus: the folder's name, or `procedural-N`.
+    pub fn cache_name(&self) -> String {
+        match self {
+            Objects::Folder(dir) | Objects::SplitFile { dir, .. } => dir
+                .file_name()
+                .map_or_else(|| "objects".into(), |n| n.to_string_lossy().into_owned()),
+            Objects::Procedural(n) => format!("procedural-{n}"),
+        }
+    }
+
     pub fn corpus(&self, split: Split, seed: u64) -> Result<Corpus> {
         Ok(match self {
             Objects::Folder(dir) => {

@@ -279,7 +279,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
         let t0 = Instant::now();
         let dir = work.join(format!("cases-{}", set.name()));
         let cs = cases::ensure(set, set_objs, config.seed, count, &dir, config.threads)?;
-        let cache = work.join(format!("symmetries-{}.json", set.name()));
+        // One cache per corpus: the object-alone and room sets share their objects.
+        let cache = work.join(format!("symmetries-{}.json", set_objs.cache_name()));
         geometry.insert(set, cases::geometry(&cs, set_objs, config.seed, &cache)?);
         report.stage(&format!("cases {}", set.name()), t0.elapsed().as_secs_f64());
         sets.push(cs);
