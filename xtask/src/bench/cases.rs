@@ -188,7 +188,8 @@ fn complete(dir: &Path, set: Set, count: u64) -> bool {
     })
 }
 
-fn read_json(path: &Path) -> Option<Value> {
+/// The JSON in `path`, when it is there and parses.
+pub fn read_json(path: &Path) -> Option<Value> {
     serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
 }
 
@@ -223,11 +224,7 @@ pub fn ensure(
             dir.display()
         );
     }
-    let partial = sibling(dir, "partial");
-    if partial.exists() {
-        std::fs::remove_dir_all(&partial)
-            .with_context(|| format!("removing {}", partial.display()))?;
-    }
+    let partial = clear_partial(dir)?;
     std::fs::create_dir_all(&partial).with_context(|| format!("creating {}", partial.display()))?;
     tracing::info!(set = set.name(), count, seed, dir = %dir.display(), "exporting cases");
     let corpus = Arc::new(objects.corpus(Split::Test, seed)?);
@@ -296,15 +293,7 @@ pub fn ensure(
         )?
         .as_bytes(),
     )?;
-    crate::bench::common::write_atomic(
-        &partial.join("bench-manifest.json"),
-        serde_json::to_string_pretty(&want)?.as_bytes(),
-    )?;
-    if dir.exists() {
-        std::fs::remove_dir_all(dir).with_context(|| format!("removing {}", dir.display()))?;
-    }
-    std::fs::rename(&partial, dir)
-        .with_context(|| format!("renaming {} to {}", partial.display(), dir.display()))?;
+    install_partial(&partial, dir, &want)?;
     if corpus.skipped() > 0 {
         tracing::warn!(
             skipped = corpus.skipped(),
@@ -422,6 +411,31 @@ pub fn geometry(
         out.insert(case.name(), Arc::new(g));
     }
     Ok(out)
+}
+
+/// `<dir>.partial`, the folder a bench output is written into before it replaces `dir`,
+/// removed if an interrupted run left it.
+pub fn clear_partial(dir: &Path) -> Result<PathBuf> {
+    let partial = sibling(dir, "partial");
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial)
+            .with_context(|| format!("removing {}", partial.display()))?;
+    }
+    Ok(partial)
+}
+
+/// Writes `manifest` as `partial`'s `bench-manifest.json` (what a later run compares to reuse
+/// the folder), then puts `partial` in the place of `dir`.
+pub fn install_partial(partial: &Path, dir: &Path, manifest: &Value) -> Result<()> {
+    crate::bench::common::write_atomic(
+        &partial.join("bench-manifest.json"),
+        serde_json::to_string_pretty(manifest)?.as_bytes(),
+    )?;
+    if dir.exists() {
+        std::fs::remove_dir_all(dir).with_context(|| format!("removing {}", dir.display()))?;
+    }
+    std::fs::rename(partial, dir)
+        .with_context(|| format!("renaming {} to {}", partial.display(), dir.display()))
 }
 
 /// `dir` with `.suffix` added to its last component.

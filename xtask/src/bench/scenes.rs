@@ -24,7 +24,7 @@ use ic_data::clutter::{ClutterConfig, ClutterGenerator};
 use ic_data::{Corpus, Split};
 use serde_json::{Value, json};
 
-use crate::bench::cases::Objects;
+use crate::bench::cases::{Objects, clear_partial, install_partial, read_json};
 use crate::bench::run::Cli;
 
 /// The clutter segmentation network the pipeline runs by default.
@@ -62,10 +62,6 @@ pub struct FramesReport {
     pub name: String,
     pub dir: PathBuf,
     pub summary: Result<Value, String>,
-}
-
-fn read_json(path: &Path) -> Option<Value> {
-    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
 }
 
 /// `incontext` with the bench's seed and threads.
@@ -121,11 +117,7 @@ fn ensure_clutter_data(
         tracing::info!(dir = %dir.display(), "reusing the clutter scenes");
         return Ok(());
     }
-    let partial = crate::bench::cases::sibling(dir, "partial");
-    if partial.exists() {
-        std::fs::remove_dir_all(&partial)
-            .with_context(|| format!("removing {}", partial.display()))?;
-    }
+    let partial = clear_partial(dir)?;
     crate::data::gen_data(crate::data::GenDataArgs {
         corpus: crate::data::CorpusArgs {
             objects: Some(meshes.clone()),
@@ -143,16 +135,7 @@ fn ensure_clutter_data(
         clutter_count: count,
         workers: Some(workers),
     })?;
-    crate::bench::common::write_atomic(
-        &partial.join("bench-manifest.json"),
-        serde_json::to_string_pretty(&want)?.as_bytes(),
-    )?;
-    if dir.exists() {
-        std::fs::remove_dir_all(dir).with_context(|| format!("removing {}", dir.display()))?;
-    }
-    std::fs::rename(&partial, dir)
-        .with_context(|| format!("renaming {} to {}", partial.display(), dir.display()))?;
-    Ok(())
+    install_partial(&partial, dir, &want)
 }
 
 /// The clutter network's instances against every object's on the same scenes.
