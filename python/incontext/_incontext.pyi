@@ -88,7 +88,7 @@ class Result:
     def object_voxels(self) -> int: ...
     @property
     def verification(self) -> Optional[Dict[str, float]]:
-        """Render-and-compare scores in [0, 1] (score, coverage, agreement, visible_agreement, violation) as ``details.verification`` of ``incontext register --json``; None when not verified (rotations=1)."""
+        """Render-and-compare scores in [0, 1] (score, coverage, agreement, visible_agreement, violation; misfit, the agreeing pixels' mean depth residual in units of their tolerance) as ``details.verification`` of ``incontext register --json``; None when not verified (rotations=1)."""
     def to_bop(self) -> Dict[str, List[float]]:
         """{"cam_R_m2c": 9 floats row-major, "cam_t_m2c": 3 floats in mm}."""
 

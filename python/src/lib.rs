@@ -885,7 +885,9 @@ impl RegistrationResult {
     /// (share of the object's pixels the model explains), `agreement` (share of the model's
     /// rendered pixels that agree with the depth), `visible_agreement` (the same among those
     /// not hidden behind a nearer observed surface), `violation` (share in front of the
-    /// observed surface). None when the pose was not verified (rotations=1).
+    /// observed surface), `misfit` (mean depth residual of the agreeing pixels in units of
+    /// their tolerance: near 0 when the surface fits within the sensor noise). None when the
+    /// pose was not verified (rotations=1).
     #[getter]
     fn verification<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
         let Some(v) = self.verification else {
@@ -897,6 +899,7 @@ impl RegistrationResult {
         d.set_item("agreement", v.agreement)?;
         d.set_item("violation", v.violation)?;
         d.set_item("visible_agreement", v.visible_agreement)?;
+        d.set_item("misfit", v.misfit)?;
         Ok(Some(d))
     }
 

@@ -554,9 +554,12 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
                                     "rival_score": r.rival_score,
                                     "evidence": r.evidence,
                                     "verified": r.verified.iter().map(|h| {
-                                        // {"R", "score", "t"}: the pose's serde form and its score.
+                                        // {"R", "t", "score", "misfit", "icp_rmse"}: the pose's
+                                        // serde form and how well it explains the depth.
                                         let mut v = json!(h.pose_normalised);
                                         v["score"] = json!(h.score);
+                                        v["misfit"] = json!(h.misfit);
+                                        v["icp_rmse"] = json!(h.icp_rmse);
                                         v
                                     }).collect::<Vec<_>>(),
                                     "stage_seconds": r.seconds,

@@ -891,6 +891,11 @@ pub struct InstanceChoice {
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct VerifiedHypothesis {
     pub score: f64,
+    /// [`crate::verify::Score::misfit`] of the pose: the mean depth residual of the pixels it
+    /// explains, in units of their tolerance.
+    pub misfit: f64,
+    /// RMS distance (normalised units) of the ICP pairs that refined it, when ICP ran.
+    pub icp_rmse: Option<f64>,
     /// Model → camera, normalised units.
     pub pose_normalised: Pose,
 }
@@ -2130,6 +2135,8 @@ impl Pipeline {
             .iter()
             .map(|(s, h)| VerifiedHypothesis {
                 score: s.score,
+                misfit: s.misfit,
+                icp_rmse: h.icp.as_ref().map(|i| i.inlier_rmse),
                 pose_normalised: h.pose,
             })
             .collect();

@@ -140,6 +140,11 @@ pub struct Score {
     /// occluding it, and left out. In clutter a right pose is often partly hidden by its
     /// neighbours; [`Score::agreement`] counts those pixels against it, this does not.
     pub visible_agreement: f64,
+    /// Mean depth residual of the agreeing pixels, each in units of its tolerance (in [0, 1]):
+    /// |rendered − observed| at the pixel, or at the nearest-in-depth neighbour that explains
+    /// it. Two poses that explain the same pixels (a near-symmetric object and its flip) differ
+    /// here: the right one fits the surface to within the sensor noise.
+    pub misfit: f64,
 }
 
 impl Observation {
@@ -308,6 +313,7 @@ impl Observation {
         let radius = NEIGHBOURHOOD;
         let (mut with_return, mut agree, mut violate, mut covered) = (0usize, 0usize, 0usize, 0);
         let mut hidden = 0usize;
+        let mut misfit = 0.0f64;
         for v in 0..h {
             for u in 0..w {
                 let i = v * w + u;
@@ -319,6 +325,8 @@ impl Observation {
                 let tol = depth_tolerance(o, self.roughness) + slack;
                 let (mut near, mut behind_all) = ((r - o).abs() <= tol, r < o - tol);
                 let mut hidden_all = r > o + tol;
+                // The residual of the pixel in units of its tolerance (1 when it disagrees).
+                let mut residual = if near { (r - o).abs() / tol } else { 1.0 };
                 if !near && radius > 0 {
                     for vv in v.saturating_sub(radius)..=(v + radius).min(h - 1) {
                         for uu in u.saturating_sub(radius)..=(u + radius).min(w - 1) {
@@ -327,7 +335,10 @@ impl Observation {
                                 continue;
                             }
                             let tol = depth_tolerance(on, self.roughness) + slack;
-                            near |= (r - on).abs() <= tol;
+                            if (r - on).abs() <= tol {
+                                near = true;
+                                residual = residual.min((r - on).abs() / tol);
+                            }
                             behind_all &= r < on - tol;
                             hidden_all &= r > on + tol;
                         }
@@ -335,6 +346,7 @@ impl Observation {
                 }
                 if near {
                     agree += 1;
+                    misfit += residual as f64;
                     covered += self.mask.data[i] as usize;
                 } else if behind_all {
                     violate += 1;
@@ -355,6 +367,11 @@ impl Observation {
                 agree as f64 / unhidden as f64
             } else {
                 0.0
+            },
+            misfit: if agree > 0 {
+                misfit / agree as f64
+            } else {
+                1.0
             },
         }
     }
@@ -397,6 +414,7 @@ struct Compared {
     agreement: f64,
     violation: f64,
     visible_agreement: f64,
+    misfit: f64,
 }
 
 impl Score {
@@ -409,6 +427,7 @@ impl Score {
             agreement: c.agreement,
             violation: c.violation,
             visible_agreement: c.visible_agreement,
+            misfit: c.misfit,
         }
     }
 }
@@ -564,5 +583,27 @@ mod tests {
         );
         assert!(s.visible_agreement > 0.95, "{s:?}");
         assert!(s.violation < 0.01, "{s:?}");
+    }
+    #[test]
+    fn misfit_grows_with_a_depth_offset_the_score_does_not_see() {
+        let (depth, mask, k, mesh, truth) = scene(5);
+        let obs = Observation::from_depth(&depth, &k, &mask).unwrap();
+        let shape = ModelShape::Mesh(mesh);
+        let right = obs.score(&shape, &truth);
+        assert!(
+            right.misfit < 0.15,
+            "noise-free depth, true pose: {right:?}"
+        );
+        // Pushed back along the viewing ray by 0.02 units, under half of the tolerance
+        // (≈ 0.045 units at 3 units away): the same pixels agree, each less closely.
+        let ray = truth.apply(DVec3::ZERO).normalize();
+        let pushed = Pose::from_translation(0.02 * ray).compose(&truth);
+        let off = obs.score(&shape, &pushed);
+        assert!(
+            (off.score - right.score).abs() < 0.03,
+            "{off:?} vs {right:?}"
+        );
+        assert!(off.misfit > right.misfit + 0.15, "{off:?} vs {right:?}");
+        assert!((0.0..=1.0).contains(&off.misfit));
     }
 }

@@ -672,8 +672,13 @@ pub fn write_best(
     write_atomic(best_json, serde_json::to_string_pretty(&j)?.as_bytes())
 }
 
-/// Writes `bytes` to `path` through a temporary file and a rename.
+/// Writes `bytes` to `path` through a temporary file and a rename, creating its folder when
+/// missing (a report asked for under a new folder is written, not refused).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("creating the folder of {}", path.display()))?;
+    }
     ic_geometry::io::write_atomic_with(path, |w| w.write_all(bytes), |e| e)
         .with_context(|| format!("writing {}", path.display()))
 }
@@ -704,4 +709,17 @@ pub fn open_csv(
         .append(true)
         .open(path)
         .with_context(|| format!("opening {}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    /// `cargo xtask eval-seg --out new/folder/report.json` wrote nothing and failed: the report
+    /// writer now makes the folder.
+    #[test]
+    fn write_atomic_creates_a_missing_report_folder() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("new/folder/report.json");
+        super::write_atomic(&out, b"{}").unwrap();
+        assert_eq!(std::fs::read(&out).unwrap(), b"{}");
+    }
 }
