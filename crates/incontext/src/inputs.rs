@@ -544,12 +544,10 @@ pub fn write_json(path: &Path, value: &Value) -> Result<()> {
 
 /// Creates the parent folder of `path` if needed.
 pub fn create_parent(path: &Path) -> Result<()> {
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| {
-            CliError::input(format!("{}: cannot create the folder: {e}", dir.display()))
-        })?;
-    }
-    Ok(())
+    ic_geometry::io::create_parent_dir(path).map_err(|e| {
+        let dir = path.parent().unwrap_or(path);
+        CliError::input(format!("{}: cannot create the folder: {e}", dir.display()))
+    })
 }
 
 /// Creates a folder.

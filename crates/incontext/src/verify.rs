@@ -584,6 +584,7 @@ mod tests {
         assert!(s.visible_agreement > 0.95, "{s:?}");
         assert!(s.violation < 0.01, "{s:?}");
     }
+
     #[test]
     fn misfit_grows_with_a_depth_offset_the_score_does_not_see() {
         let (depth, mask, k, mesh, truth) = scene(5);

@@ -675,10 +675,8 @@ pub fn write_best(
 /// Writes `bytes` to `path` through a temporary file and a rename, creating its folder when
 /// missing (a report asked for under a new folder is written, not refused).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)
-            .with_context(|| format!("creating the folder of {}", path.display()))?;
-    }
+    ic_geometry::io::create_parent_dir(path)
+        .with_context(|| format!("creating the folder of {}", path.display()))?;
     ic_geometry::io::write_atomic_with(path, |w| w.write_all(bytes), |e| e)
         .with_context(|| format!("writing {}", path.display()))
 }

@@ -36,9 +36,8 @@ pub fn rel(path: &Path) -> PathBuf {
 
 /// Writes `bytes` to `path` through a temporary file and a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
+    ic_geometry::io::create_parent_dir(path)
+        .with_context(|| format!("creating {}", path.parent().unwrap_or(path).display()))?;
     ic_geometry::io::write_atomic_with(path, |w| std::io::Write::write_all(w, bytes), |e| e)
         .with_context(|| format!("writing {}", path.display()))
 }

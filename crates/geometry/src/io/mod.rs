@@ -257,6 +257,16 @@ fn test_write_delay() -> Option<std::time::Duration> {
     })
 }
 
+/// Creates the folder that will hold `path` (and its parents) when missing; nothing for a bare
+/// file name. The writers that create their output's folder call this before
+/// [`write_atomic_with`], which itself never creates folders.
+pub fn create_parent_dir(path: &Path) -> std::io::Result<()> {
+    match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => std::fs::create_dir_all(dir),
+        _ => Ok(()),
+    }
+}
+
 /// Writes `path` atomically: `write` fills a temporary file next to `path`, which is flushed,
 /// synced and then renamed over `path`. On any failure the temporary file is removed and
 /// `path` is left untouched, so a crash never leaves a half-written file behind (and
