@@ -16,7 +16,7 @@ the message; the run goes on.
 
     open3d_peers.py --cases DIR --out results.jsonl [--methods ...] [--seed S] [--threads N]
     open3d_peers.py --check --cases DIR --out results.jsonl [--methods ...]
-    open3d_peers.py --timing --points 512,1024x768,2048 --repeats 10 --out timing.json [--cases DIR]
+    open3d_peers.py --timing --points 512,1024x768,2048 --repeats 10 --out timing.json [--cases DIR [--timing-pairs K]]
 
 See README.md next to this file for the parameters and why they were chosen.
 """
@@ -33,7 +33,8 @@ from pathlib import Path
 
 from peers_common import (cap_points, case_dirs, case_record, check_results, derived_seed, error_text, log,
                           machine_info, parse_sizes, record_failure, record_pose, resample, resume_done,
-                          size_label, synthetic_pair, timing_record, write_record, write_report)
+                          size_label, synthetic_pair, timing_cases, timing_pair_seed, timing_record, write_record,
+                          write_report)
 
 METHODS = ["icp-p2p", "icp-p2l", "fpfh-ransac", "fpfh-ransac-icp", "fgr"]
 PREFIX = "o3d-"
@@ -81,6 +82,9 @@ def parse_args(argv=None):
                    help="timing mode: comma-separated sizes, each N (model and observed N points) or MxN "
                         "(model M, observed N)")
     p.add_argument("--repeats", type=int, default=5, help="timing mode: runs per (method, points), median reported")
+    p.add_argument("--timing-pairs", type=int, default=1,
+                   help="timing mode with a --cases set: time the first K cases, one warm-up and --repeats runs "
+                        "each; the median of their medians is reported")
     args = p.parse_args(argv)
     args.methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     bad = [m for m in args.methods if m not in METHODS]
@@ -294,43 +298,51 @@ def timing(args):
 
     o3d = import_open3d(args.threads)
     pipe = Pipeline(o3d, args)
-    case = None
-    if args.cases is not None:
-        case = args.cases if (args.cases / "source.ply").is_file() else case_dirs(args.cases)[0]
+    cases = timing_cases(args.cases, args.timing_pairs)
+    pair = ", ".join(str(c) for c in cases) if cases else "synthetic bumpy ellipsoid"
     config = {"mode": "timing", "points": [size_label(*size) for size in args.sizes], "repeats": args.repeats,
               "seed": args.seed, "methods": [PREFIX + m for m in args.methods],
-              "threads": args.threads or "open3d default",
-              "pair": str(case) if case else "synthetic bumpy ellipsoid", **pipe.config()}
+              "threads": args.threads or "open3d default", "pairs": max(len(cases), 1),
+              "pair": pair, **pipe.config()}
     print(f"open3d_peers seed {args.seed} config {json.dumps(config)}", flush=True)
+    clouds = [(read_points(o3d, c / "source.ply"), read_points(o3d, c / "target.ply")) for c in cases]
     results = []
     total, k = len(args.sizes) * len(args.methods), 0
     for n_model, n_obs in args.sizes:
         # The seeds' key: str(n) for a square size (the draws of plain `--points N`), else "MxN".
         size = size_label(n_model, n_obs)
-        if case is None:
-            source, target = synthetic_pair(n_model, derived_seed(args.seed, "timing"), observed=n_obs)
+        if not cases:
+            pairs = [synthetic_pair(n_model, derived_seed(args.seed, "timing"), observed=n_obs)]
         else:
-            rng = np.random.default_rng(derived_seed(args.seed, "timing", size))
-            source = resample(read_points(o3d, case / "source.ply"), n_model, rng)
-            target = resample(read_points(o3d, case / "target.ply"), n_obs, rng)
+            pairs = []
+            for i, (source_all, target_all) in enumerate(clouds):
+                rng = np.random.default_rng(timing_pair_seed(args.seed, size, i))
+                pairs.append((resample(source_all, n_model, rng), resample(target_all, n_obs, rng)))
         for m in args.methods:
             k += 1
-            runs, details, error = [], {}, None
+            pair_runs, details, error = [], {}, None
             try:
-                o3d.utility.random.seed(derived_seed(args.seed, "timing", size, seed_key(m)))
-                pipe.run(m, source, target)  # warm-up, not counted
-                for _ in range(args.repeats):
+                for source, target in pairs:
+                    runs = []
                     o3d.utility.random.seed(derived_seed(args.seed, "timing", size, seed_key(m)))
-                    _, seconds, details = pipe.run(m, source, target)
-                    runs.append(seconds)
+                    pipe.run(m, source, target)  # warm-up, not counted
+                    for _ in range(args.repeats):
+                        o3d.utility.random.seed(derived_seed(args.seed, "timing", size, seed_key(m)))
+                        _, seconds, details = pipe.run(m, source, target)
+                        runs.append(seconds)
+                    pair_runs.append(runs)
             except Exception as e:  # noqa: BLE001
                 error = error_text(e)
+                pair_runs = []
+            runs = [s for r in pair_runs for s in r]
             results.append(timing_record(PREFIX + m, n_model, n_obs, runs, error, k, total,
+                                         pair_runs=pair_runs if len(pairs) > 1 else None,
                                          source_down=details.get("source_down"),
                                          target_down=details.get("target_down")))
     report = {"machine": machine_info(o3d.utility.get_max_threads()), "open3d_version": o3d.__version__,
               "threads": args.threads or o3d.utility.get_max_threads(), "seed": args.seed,
-              "repeats": args.repeats, "pair": config["pair"], "config": pipe.config(), "results": results}
+              "repeats": args.repeats, "pairs": config["pairs"], "pair": config["pair"], "config": pipe.config(),
+              "results": results}
     write_report(args.out, report)
     return 0
 

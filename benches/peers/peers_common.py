@@ -201,15 +201,46 @@ def write_record(out, rec, n: int, total: int) -> bool:
     return not rec["ok"]
 
 
-def timing_record(method: str, m: int, n: int, runs, error, k: int, total: int, **extra):
+def timing_cases(cases: Path | None, pairs: int) -> list[Path]:
+    """The case folders timed: `cases` itself when it is one case (a folder with source.ply;
+    then `pairs` must be 1), else the first `pairs` case folders of the set `cases` (fewer when
+    the set is smaller); none without `--cases` (a synthetic pair)."""
+    if pairs < 1:
+        raise SystemExit(f"--timing-pairs {pairs}: must be at least 1")
+    if cases is None:
+        return []
+    if (cases / "source.ply").is_file():
+        if pairs != 1:
+            raise SystemExit(f"--cases {cases} is one case: --timing-pairs must be 1, not {pairs}")
+        return [cases]
+    return case_dirs(cases)[:pairs]
+
+
+def timing_pair_seed(seed: int, size: str, index: int) -> int:
+    """The resampling seed of the `index`-th timed pair at `size` (the first pair keeps the
+    seed of a one-pair run, so its numbers do not change)."""
+    if index == 0:
+        return derived_seed(seed, "timing", size)
+    return derived_seed(seed, "timing", size, f"pair{index}")
+
+
+def timing_record(method: str, m: int, n: int, runs, error, k: int, total: int, pair_runs=None, **extra):
     """One timing result (method at `m` model and `n` observed points: the seconds of each
-    repeat, or the error), logged as the `k`-th of `total`; `extra` are the script's own fields."""
+    repeat, or the error), logged as the `k`-th of `total`; `extra` are the script's own fields.
+
+    With `pair_runs` (one list of repeats per timed pair; `runs` is then all of them), the
+    median is the median of the pairs' medians: every pair counts once, however its repeats
+    spread."""
     import statistics
 
+    pair_medians = [statistics.median(r) for r in pair_runs if r] if pair_runs else None
+    median = statistics.median(pair_medians) if pair_medians else (statistics.median(runs) if runs else None)
     rec = {"method": method, "points": m, "observed_points": n,
-           "median_seconds": statistics.median(runs) if runs else None,
+           "median_seconds": median if runs else None,
            "min_seconds": min(runs) if runs else None, "runs": runs, "ok": error is None, "error": error,
            **extra}
+    if pair_medians is not None:
+        rec["pair_medians"] = pair_medians
     med = f"{rec['median_seconds']:.4f}s" if runs else f"FAILED: {error}"
     log(f"[{k}/{total}] {method} n={size_label(m, n)} median {med}")
     return rec

@@ -300,6 +300,71 @@ def test_timing_resamples_the_model_and_the_observed_points_to_each_size():
         assert seeds == want_seeds, (seeds, want_seeds)
 
 
+
+def test_timing_pairs_time_the_first_k_cases_and_report_the_median_of_their_medians():
+    """In this interpreter (numpy and Open3D needed): `--timing-pairs 2` on a set of three cases
+    times the first two (the first with a one-pair run's draws, the second with its own), and
+    the median is that of the two pairs' medians, not of all the runs pooled; a single case
+    folder with --timing-pairs 2 is refused."""
+    try:
+        import numpy as np
+        import open3d  # noqa: F401
+    except ImportError as e:
+        raise unittest.SkipTest(f"needs numpy and open3d: {e}")
+    calls = []
+    # Per call (a warm-up then 3 repeats per pair): pair 0 runs 1, 2, 9 (median 2), pair 1
+    # runs 7, 8, 3 (median 7). Median of the medians 4.5; of the six runs pooled 5.
+    seconds = [100.0, 1.0, 2.0, 9.0, 100.0, 7.0, 8.0, 3.0]
+
+    class Probe:
+        def __init__(self, o3d, args):
+            pass
+
+        def config(self):
+            return {}
+
+        def run(self, method, source, target):
+            calls.append((np.array(source), np.array(target)))
+            return np.eye(4), seconds[len(calls) - 1], {}
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cases, out = Path(tmp) / "cases", Path(tmp) / "timing.json"
+        for i in range(3):
+            make_case(cases / f"case_{i:05d}", box_surface(random.Random(10 + i), 400), axis_angle((1, 2, 3), 40 * i),
+                      [0.1, -0.2, 2.8])
+        saved = open3d_peers.Pipeline
+        open3d_peers.Pipeline = Probe
+        try:
+            args = open3d_peers.parse_args(["--timing", "--points", "300x200", "--repeats", "3", "--cases",
+                                            str(cases), "--timing-pairs", "2", "--out", str(out), "--methods",
+                                            "icp-p2p", "--seed", "5"])
+            assert open3d_peers.timing(args) == 0
+            one = open3d_peers.parse_args(["--timing", "--points", "300x200", "--cases", str(cases / "case_00000"),
+                                           "--timing-pairs", "2", "--out", str(out)])
+            try:
+                open3d_peers.timing(one)
+                raise AssertionError("--timing-pairs 2 on one case folder was accepted")
+            except SystemExit as e:
+                assert "--timing-pairs must be 1" in str(e), e
+        finally:
+            open3d_peers.Pipeline = saved
+        report = json.loads(out.read_text())
+        assert report["pairs"] == 2, report["pairs"]
+        (r,) = report["results"]
+        assert r["pair_medians"] == [2.0, 7.0] and r["median_seconds"] == 4.5, r
+        assert sorted(r["runs"]) == [1.0, 2.0, 3.0, 7.0, 8.0, 9.0], r
+        assert len(calls) == 8, len(calls)
+        o3d = open3d_peers.import_open3d(0)
+        for i, first_call in ((0, 0), (1, 4)):
+            case = cases / f"case_{i:05d}"
+            rng = np.random.default_rng(peers_common.timing_pair_seed(5, "300x200", i))
+            source = peers_common.resample(open3d_peers.read_points(o3d, case / "source.ply"), 300, rng)
+            target = peers_common.resample(open3d_peers.read_points(o3d, case / "target.ply"), 200, rng)
+            for s, t in calls[first_call:first_call + 4]:
+                assert np.array_equal(s, source) and np.array_equal(t, target), i
+        assert peers_common.timing_pair_seed(5, "300x200", 0) == peers_common.derived_seed(5, "timing", "300x200")
+
+
 def run_tests():
     tests = [(name, fn) for name, fn in globals().items() if name.startswith("test_") and callable(fn)]
     failed = 0

@@ -99,6 +99,12 @@ impl Dgcnn {
         })
     }
 
+    /// Sets the neighbours per point of the graph `forward_t` expects (the weights do not
+    /// depend on it).
+    pub(crate) fn set_neighbours(&mut self, k: usize) {
+        self.k = k;
+    }
+
     pub fn forward_t(&self, x: &Tensor, graph: &Tensor, train: bool) -> Result<Tensor> {
         let mut h = x.clone();
         let mut feats = Vec::with_capacity(self.edges.len());

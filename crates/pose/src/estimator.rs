@@ -208,6 +208,23 @@ impl PoseEstimator {
         &self.config
     }
 
+    /// The same weights with `k` neighbours per point in the DGCNN's k-NN graph instead of
+    /// the k they were trained with (no weight depends on k): to measure accuracy against
+    /// speed at another k. Kept model sides are dropped (they depend on k). Errors when `k` is
+    /// 0; inputs then need at least max(k, 3) points.
+    pub fn with_neighbours(mut self, k: usize) -> Result<Self> {
+        if k == 0 {
+            return Err(PoseError::Config("k must be at least 1".into()));
+        }
+        self.net.set_neighbours(k);
+        self.config.net.k = k;
+        if let Some(cache) = &self.model_sides {
+            let budget = cache.lock().unwrap_or_else(|e| e.into_inner()).budget;
+            self = self.keeping_model_sides(budget);
+        }
+        Ok(self)
+    }
+
     pub fn net(&self) -> &PoseNet {
         &self.net
     }

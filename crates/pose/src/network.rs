@@ -274,6 +274,13 @@ impl PoseNet {
         })
     }
 
+    /// Uses `k` neighbours in the DGCNN's k-NN graph instead of the configured k (no weight
+    /// depends on it; batches must then be built with this k).
+    pub fn set_neighbours(&mut self, k: usize) {
+        self.encoder.set_neighbours(k);
+        self.cfg.k = k;
+    }
+
     pub fn config(&self) -> &NetConfig {
         &self.cfg
     }

@@ -222,6 +222,26 @@ fn saved_and_reloaded_weights_give_bit_identical_outputs() {
     }
 }
 
+#[test]
+fn with_neighbours_runs_the_same_weights_on_a_graph_of_that_k() {
+    // The same seed gives the same weights whatever k (no weight depends on it).
+    let mut k6 = tiny(Head::Softmax);
+    k6.net.k = 6;
+    let trained_k6 = Trainer::new(k6, 9).unwrap().estimator();
+    let k4 = Trainer::new(tiny(Head::Softmax), 9).unwrap().estimator();
+    let probe = pair(23, 40, 30, 25);
+    let at4 = log_p(&k4, &probe);
+    let moved = k4.with_neighbours(6).unwrap();
+    assert_eq!(moved.config().net.k, 6);
+    let (a, b) = (log_p(&moved, &probe), log_p(&trained_k6, &probe));
+    assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
+    assert!(a.iter().zip(&at4).any(|(x, y)| x != y), "k changed nothing");
+    assert!(matches!(
+        moved.with_neighbours(0),
+        Err(PoseError::Config(_))
+    ));
+}
+
 fn weights(t: &Trainer) -> Vec<(String, Vec<u32>)> {
     let mut out: Vec<(String, Vec<u32>)> = t
         .varmap()

@@ -25,6 +25,7 @@
 
 pub mod cases;
 pub mod common;
+pub mod curve;
 pub mod report;
 pub mod run;
 pub mod scenes;
@@ -110,6 +111,15 @@ pub struct BenchArgs {
     /// Timing repeats after one warm-up (default 10, quick 2).
     #[arg(long)]
     pub repeats: Option<usize>,
+    /// Object-alone cases each registration time is measured on, ours and Open3D's (one warm-up
+    /// and --repeats runs each; the median of their medians; default 10, quick 1). OpenCV PPF is
+    /// timed on the first only (seconds to minutes per run).
+    #[arg(long)]
+    pub timing_pairs: Option<usize>,
+    /// Object-alone cases of the accuracy/speed curve of our one-shot pose over point counts
+    /// and the DGCNN's k (default 200, quick 5; 0: no curve).
+    #[arg(long)]
+    pub curve_cases: Option<usize>,
     /// Timed training steps per head (default 5, quick 1).
     #[arg(long)]
     pub train_steps: Option<usize>,
@@ -229,6 +239,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
             .max(1),
         threads: args.threads.max(1),
         repeats,
+        timing_pairs: args.timing_pairs.unwrap_or(if quick { 1 } else { 10 }),
+        curve_cases: args.curve_cases.unwrap_or(if quick { 5 } else { 200 }),
         train_steps: args.train_steps.unwrap_or(if quick { 1 } else { 5 }),
         out: out.clone(),
         work: work.clone(),
@@ -238,6 +250,13 @@ pub fn run(args: BenchArgs) -> Result<()> {
     };
     if config.noback_count == 0 || config.room_count == 0 {
         bail!("--noback-count and --room-count must be ≥ 1");
+    }
+    if config.timing_pairs == 0 || config.timing_pairs as u64 > config.noback_count {
+        bail!(
+            "--timing-pairs {}: must be between 1 and the object-alone case count ({})",
+            config.timing_pairs,
+            config.noback_count
+        );
     }
     println!(
         "bench seed {} config {}",
@@ -472,7 +491,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         let t0 = Instant::now();
         let (noback, room) = (&sets[0], &sets[1]);
         debug_assert!(noback.set == Set::Noback && room.set == Set::Room);
-        report.speed = Some(speed::measure(
+        let mut measured = speed::measure(
             &root,
             noback,
             room,
@@ -480,8 +499,28 @@ pub fn run(args: BenchArgs) -> Result<()> {
             config.seed,
             config.threads,
             config.repeats,
+            config.timing_pairs,
             config.train_steps,
-        )?);
+        )?;
+        if config.curve_cases > 0 {
+            // The quick run draws two sizes and two k only.
+            let (sizes, ks): (&[(usize, usize)], &[usize]) = if quick {
+                (&[(128, 96), (384, 288)], &[8, 16])
+            } else {
+                (&curve::CURVE_SIZES, &curve::CURVE_K)
+            };
+            measured.curve = Some(curve::measure(
+                &root,
+                noback,
+                config.seed,
+                config.curve_cases,
+                config.timing_pairs,
+                config.repeats,
+                sizes,
+                ks,
+            )?);
+        }
+        report.speed = Some(measured);
         if let Some(py) = &python {
             let file = work.join("runs/open3d-timing.json");
             match run::run_peer_timing(
@@ -491,6 +530,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
                 &file,
                 &speed::SIZES,
                 config.repeats,
+                config.timing_pairs,
                 config.threads,
                 config.seed,
             ) {

@@ -521,9 +521,10 @@ fn run_script(
         .collect())
 }
 
-/// A peer script's timing mode on the first case of `cases` resampled to each size; `extra`
-/// are the script's own options (after the common ones), `name` its name in the banner and
-/// `progress` in the progress line. The parsed JSON.
+/// A peer script's timing mode on the first `pairs` cases of `cases` resampled to each size
+/// (with one pair the case folder itself is passed, which every version of the scripts takes);
+/// `extra` are the script's own options (after the common ones), `name` its name in the banner
+/// and `progress` in the progress line. The parsed JSON.
 #[allow(clippy::too_many_arguments)]
 fn script_timing(
     root: &Path,
@@ -536,6 +537,7 @@ fn script_timing(
     out: &Path,
     sizes: &[(usize, usize)],
     repeats: usize,
+    pairs: usize,
     threads: usize,
     seed: u64,
 ) -> Result<serde_json::Value, String> {
@@ -543,6 +545,14 @@ fn script_timing(
         .child(0)
         .dir()
         .to_path_buf();
+    let (cases_arg, pairs_args) = if pairs <= 1 {
+        (first, Vec::new())
+    } else {
+        (
+            cases.dir.clone(),
+            vec!["--timing-pairs".to_string(), pairs.to_string()],
+        )
+    };
     let sizes_arg = sizes
         .iter()
         .map(|&s| crate::bench::speed::size_label(s))
@@ -558,7 +568,8 @@ fn script_timing(
         .args(["--seed", &seed.to_string()])
         .args(extra)
         .arg("--cases")
-        .arg(&first)
+        .arg(&cases_arg)
+        .args(&pairs_args)
         .arg("--out")
         .arg(out);
     eprintln!("== {name} timing at {sizes_arg} points, {repeats} repeats");
@@ -598,7 +609,8 @@ pub fn run_peers(
     run_script(root, python, cases, runs, threads, seed, resume, run)
 }
 
-/// Open3D's timing mode on the first case of `cases` resampled to each size; the parsed JSON.
+/// Open3D's timing mode on the first `pairs` cases of `cases` resampled to each size; the
+/// parsed JSON.
 #[allow(clippy::too_many_arguments)]
 pub fn run_peer_timing(
     root: &Path,
@@ -607,6 +619,7 @@ pub fn run_peer_timing(
     out: &Path,
     sizes: &[(usize, usize)],
     repeats: usize,
+    pairs: usize,
     threads: usize,
     seed: u64,
 ) -> Result<serde_json::Value, String> {
@@ -621,6 +634,7 @@ pub fn run_peer_timing(
         out,
         sizes,
         repeats,
+        pairs,
         threads,
         seed,
     )
@@ -707,8 +721,8 @@ pub fn run_ppf(
     run_script(root, python, cases, runs, threads, seed, resume, run)
 }
 
-/// The PPF script's timing mode on the first case of `cases` resampled to each size (the same
-/// pairs as Open3D's); the parsed JSON.
+/// The PPF script's timing mode on the first case of `cases` resampled to each size (Open3D's
+/// first pair; one only, as one PPF run takes seconds to minutes); the parsed JSON.
 #[allow(clippy::too_many_arguments)]
 pub fn run_ppf_timing(
     root: &Path,
@@ -732,6 +746,7 @@ pub fn run_ppf_timing(
         out,
         sizes,
         repeats,
+        1,
         threads,
         seed,
     )

@@ -1,10 +1,13 @@
 //! Stage 4 of `cargo xtask bench`: speed, measured in this process on this machine.
 //!
 //! - registration time of ours at the [`SIZES`] (the shipped preset's operating point, the
-//!   paper's Table 3 sizes and its 1024 × 768 inference size): the first object-alone case's
-//!   source and target resampled to m and n points (random subset, or repeats with 0.005 jitter
-//!   when a cloud is smaller), `PoseEstimator::estimate` with and without ICP, one warm-up then
-//!   `repeats` runs — the same pair and protocol as the peers' `--timing --cases` mode;
+//!   paper's Table 3 sizes and its 1024 × 768 inference size): each of the first `pairs`
+//!   object-alone cases' source and target resampled to m and n points (random subset, or
+//!   repeats with 0.005 jitter when a cloud is smaller), `PoseEstimator::estimate` with and
+//!   without ICP, one warm-up then `repeats` runs per pair, the median of the pairs' medians —
+//!   the same cases and protocol as the peers' `--timing --cases DIR --timing-pairs K` mode (one
+//!   pair's time can swing several-fold with how fast a method converges on it: FGR took
+//!   6–28 ms on the same first case in different runs);
 //! - segmentation of one 640×480 depth map (the first room case);
 //! - CPU renderer views/s: a room scene at 640×480 and the object alone at 160×120;
 //! - training pairs/hour: a few real `Trainer::step`s of the `cpu` preset per head on samples
@@ -54,8 +57,12 @@ pub fn size_label((m, n): (usize, usize)) -> String {
 #[derive(Clone, Debug, Serialize)]
 pub struct Timed {
     pub label: String,
+    /// The median of `runs`, or over several pairs the median of `pair_medians`.
     pub median_seconds: Option<f64>,
     pub runs: Vec<f64>,
+    /// Timed on several pairs: each pair's median, in pair order (every pair counts once).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub pair_medians: Vec<f64>,
     /// E.g. "untrained weights (model file absent)".
     pub note: Option<String>,
     pub error: Option<String>,
@@ -93,11 +100,15 @@ pub struct TrainTiming {
 pub struct Speed {
     pub threads: usize,
     pub repeats: usize,
+    /// Object-alone cases each registration time is measured on.
+    pub pairs: usize,
     pub pair: String,
     pub ours: Vec<RegTiming>,
     pub segmentation: Timed,
     pub render: Vec<Timed>,
     pub training: Vec<TrainTiming>,
+    /// The accuracy/speed curve over point counts and k (`--curve-cases`, 0: not measured).
+    pub curve: Option<crate::bench::curve::SpeedCurve>,
 }
 
 /// SplitMix64: a tiny seeded generator for resampling (xtask has no `rand`).
@@ -126,6 +137,19 @@ impl SplitMix {
     }
 }
 
+/// The resampling generator of the `index`-th case at (m, n) points: the speed table and the
+/// accuracy/speed curve draw the same points from the same case (the first case keeps the
+/// draws of a one-pair run).
+pub fn pair_rng(seed: u64, (m, n): (usize, usize), index: usize) -> SplitMix {
+    let key = if m == n {
+        n as u64
+    } else {
+        (m as u64) << 32 | n as u64
+    };
+    let pair_key = (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    SplitMix(seed ^ key.wrapping_mul(0x1000_0001) ^ pair_key)
+}
+
 /// Exactly `n` points: a random subset in file order when there are enough, else all of them
 /// plus random repeats jittered by N(0, 0.005²) per coordinate.
 pub fn resample(points: &[Vec3], n: usize, rng: &mut SplitMix) -> Vec<Vec3> {
@@ -151,7 +175,7 @@ pub fn resample(points: &[Vec3], n: usize, rng: &mut SplitMix) -> Vec<Vec3> {
 }
 
 /// One warm-up call, then `repeats` timed calls.
-fn time_it<T, E: std::fmt::Display>(
+pub(crate) fn time_it<T, E: std::fmt::Display>(
     label: &str,
     repeats: usize,
     mut f: impl FnMut() -> Result<T, E>,
@@ -160,6 +184,7 @@ fn time_it<T, E: std::fmt::Display>(
         label: label.to_string(),
         median_seconds: None,
         runs: Vec::new(),
+        pair_medians: Vec::new(),
         note: None,
         error: None,
     };
@@ -181,14 +206,43 @@ fn time_it<T, E: std::fmt::Display>(
     timed
 }
 
-fn read_points(path: &Path) -> Result<Vec<Vec3>> {
+/// One quantity timed on several pairs (each by [`time_it`]): every run, each pair's median and
+/// the median of those; the first error ends it.
+pub(crate) fn combine_pairs(label: &str, pairs: Vec<Timed>) -> Timed {
+    let mut out = Timed {
+        label: label.to_string(),
+        median_seconds: None,
+        runs: Vec::new(),
+        pair_medians: Vec::new(),
+        note: None,
+        error: None,
+    };
+    for t in pairs {
+        if t.error.is_some() {
+            out.error = t.error;
+            return out;
+        }
+        out.runs.extend(&t.runs);
+        out.pair_medians.extend(t.median_seconds);
+    }
+    if !out.pair_medians.is_empty() {
+        out.median_seconds = Some(ic_eval::median(&out.pair_medians));
+    }
+    out
+}
+
+pub(crate) fn read_points(path: &Path) -> Result<Vec<Vec3>> {
     Ok(ic_geometry::io::read_ply_cloud(path)
         .with_context(|| format!("reading {}", path.display()))?
         .points)
 }
 
 /// The estimator for `head`: the shipped model, or an untrained network (with a note).
-fn estimator(root: &Path, head: Head, seed: u64) -> Result<(PoseEstimator, Option<String>)> {
+pub(crate) fn estimator(
+    root: &Path,
+    head: Head,
+    seed: u64,
+) -> Result<(PoseEstimator, Option<String>)> {
     let path = root.join(pose_model(head.as_str()));
     if path.is_file() {
         let e =
@@ -214,12 +268,17 @@ pub fn measure(
     seed: u64,
     threads: usize,
     repeats: usize,
+    pairs: usize,
     train_steps: usize,
 ) -> Result<Speed> {
-    let first_case = CaseFolder::new(&noback.dir).child(0);
-    let first = first_case.dir().to_path_buf();
-    let source = read_points(&first_case.source())?;
-    let target = read_points(&first_case.target())?;
+    let folder = CaseFolder::new(&noback.dir);
+    let pairs = pairs.clamp(1, noback.count.max(1) as usize);
+    let clouds = (0..pairs)
+        .map(|i| {
+            let case = folder.child(i as u64);
+            Ok((read_points(&case.source())?, read_points(&case.target())?))
+        })
+        .collect::<Result<Vec<_>>>()?;
     let total = (SIZES.len() * 4 + 1 + 2 + 2) as u64;
     let bar = crate::bench::common::progress_bar(total, "speed");
 
@@ -228,14 +287,14 @@ pub fn measure(
     for head in [Head::Softmax, Head::Ot] {
         let (mut est, note) = estimator(root, head, seed)?;
         for &(m, n) in &SIZES {
-            let key = if m == n {
-                n as u64
-            } else {
-                (m as u64) << 32 | n as u64
-            };
-            let mut rng = SplitMix(seed ^ key.wrapping_mul(0x1000_0001));
-            let x = resample(&source, m, &mut rng);
-            let y = resample(&target, n, &mut rng);
+            let resampled: Vec<_> = clouds
+                .iter()
+                .enumerate()
+                .map(|(i, (source, target))| {
+                    let mut rng = pair_rng(seed, (m, n), i);
+                    (resample(source, m, &mut rng), resample(target, n, &mut rng))
+                })
+                .collect();
             for refine in [Refine::None, Refine::Icp] {
                 est.recovery.refine = refine;
                 let method = format!(
@@ -247,12 +306,18 @@ pub fn measure(
                 // A failed recovery (untrained weights can give degenerate matches) still ran
                 // the network: time it, and say so.
                 let mut failure = None;
-                let mut timed = time_it(&method, repeats, || {
-                    if let Err(e) = est.estimate(&x, &y) {
-                        failure = Some(e.to_string());
-                    }
-                    Ok::<_, std::convert::Infallible>(())
-                });
+                let per_pair = resampled
+                    .iter()
+                    .map(|(x, y)| {
+                        time_it(&method, repeats, || {
+                            if let Err(e) = est.estimate(x, y) {
+                                failure = Some(e.to_string());
+                            }
+                            Ok::<_, std::convert::Infallible>(())
+                        })
+                    })
+                    .collect();
+                let mut timed = combine_pairs(&method, per_pair);
                 timed.note = match (note.clone(), failure) {
                     (n, None) => n,
                     (n, Some(f)) => Some(
@@ -358,6 +423,7 @@ pub fn measure(
             ),
             median_seconds: Some(ic_eval::median(&sample_runs)),
             runs: sample_runs,
+            pair_medians: Vec::new(),
             note: Some("objects already loaded (a training run loads each once)".into()),
             error: None,
         };
@@ -383,14 +449,21 @@ pub fn measure(
     Ok(Speed {
         threads,
         repeats,
+        pairs,
         pair: format!(
-            "`{}`: source.ply and target.ply resampled to n points each",
-            crate::bench::common::rel(&first).display()
+            "the first {} of `{}`: source.ply and target.ply resampled to m and n points",
+            if pairs == 1 {
+                "case".to_string()
+            } else {
+                format!("{pairs} cases")
+            },
+            crate::bench::common::rel(&noback.dir).display()
         ),
         ours,
         segmentation,
         render,
         training,
+        curve: None,
     })
 }
 
@@ -461,5 +534,37 @@ mod tests {
         assert_eq!(&b[..100], &pts[..]);
         assert!(b[100..].iter().all(|p| (p.x - p.x.round()).abs() < 0.05));
         assert!(resample(&[], 5, &mut SplitMix(1)).is_empty());
+    }
+
+    fn timed(runs: &[f64]) -> Timed {
+        Timed {
+            label: "x".into(),
+            median_seconds: Some(ic_eval::median(runs)),
+            runs: runs.to_vec(),
+            pair_medians: Vec::new(),
+            note: None,
+            error: None,
+        }
+    }
+
+    #[test]
+    fn several_pairs_report_the_median_of_their_medians_not_of_the_pooled_runs() {
+        // Pair medians 2, 7 and 3: median 3; the nine runs pooled would give 7.
+        let t = combine_pairs(
+            "x",
+            vec![
+                timed(&[1.0, 2.0, 9.0]),
+                timed(&[7.0, 8.0, 7.0]),
+                timed(&[3.0, 9.0, 2.0]),
+            ],
+        );
+        assert_eq!(t.pair_medians, [2.0, 7.0, 3.0]);
+        assert_eq!(t.median_seconds, Some(3.0));
+        assert_eq!(t.runs.len(), 9);
+        assert!(t.error.is_none());
+        let mut failed = timed(&[]);
+        failed.error = Some("boom".into());
+        let t = combine_pairs("x", vec![timed(&[1.0]), failed]);
+        assert_eq!((t.median_seconds, t.error.as_deref()), (None, Some("boom")));
     }
 }

@@ -13,6 +13,7 @@ use serde_json::Value;
 use super::{Report, SetReport};
 use crate::bench::cases::Set;
 use crate::bench::common::write_atomic;
+use crate::bench::curve::SpeedCurve;
 use crate::bench::run::{PEER_METHODS, PPF_METHODS};
 use crate::bench::speed::{SIZES, Speed, Timed, size_label};
 
@@ -480,9 +481,10 @@ fn speed_section(report: &Report, speed: &Speed) -> String {
     let fgr = |size: (usize, usize)| report.open3d_median("o3d-fgr", size);
     let _ = writeln!(
         s,
-        "Median wall time of one registration, {} thread(s), one warm-up then {} runs, on {} \
-         resampled to m model and n observed points (`m×n`; one number: n × n) — the same case \
-         and resampling for the peers (their `--timing --cases` mode). The sizes: the shipped \
+        "Median wall time of one registration, {} thread(s), one warm-up then {} runs per pair, \
+         on {} (`m×n`; one number: n × n; over several pairs the median of the pairs' medians) — \
+         the same cases for Open3D (its `--timing --cases DIR --timing-pairs K` mode) and the \
+         first of them for OpenCV PPF. The sizes: the shipped \
          `cpu` preset's operating point (384×288, what `register` feeds the network), the \
          paper's Table 3 (512, 1024, 2048) and its inference size (1024×768). Ratios are to \
          Open3D's FGR at the same size, measured in the same run (× < 1: faster than FGR). \
@@ -586,8 +588,9 @@ fn speed_section(report: &Report, speed: &Speed) -> String {
         let _ = writeln!(
             s,
             "\nOpenCV {} PPF: cv2.setNumThreads({}), but the PyPI wheel runs its PPF and ICP loops \
-             on one core; median of {} run(s) after one warm-up. Each time includes training the \
-             detector on the n model points (a new model in every case) and the scene normals; \
+             on one core; median of {} run(s) after one warm-up, on the first pair only. Each \
+             time includes training the detector on the n model points (a new model in every \
+             case) and the scene normals; \
              `opencv-ppf-icp` adds its ICP to the PPF stage of `opencv-ppf`.",
             t["opencv_version"].as_str().unwrap_or("?"),
             t["threads"],
@@ -632,7 +635,143 @@ fn speed_section(report: &Report, speed: &Speed) -> String {
          first room case (network on the preset's input size, up-sampling, components). The \
          renderer is the CPU rasteriser the training uses.\n",
     );
+    if let Some(curve) = &speed.curve {
+        s.push_str(&curve_section(curve, fgr((384, 288)), speed.threads));
+    }
     s
+}
+
+/// The FGR time the curve compares with: Open3D's at the operating point (384×288).
+const CURVE_REFERENCE: (usize, usize) = (384, 288);
+
+/// The accuracy/speed curve: a table (accuracy, time and ratio to FGR at the operating point
+/// per size and k), the best point at ≤ 0.5× FGR, and the plot's link.
+fn curve_section(curve: &SpeedCurve, fgr: Option<f64>, threads: usize) -> String {
+    let mut s = String::new();
+    let mut ks: Vec<usize> = curve.points.iter().map(|p| p.k).collect();
+    ks.sort_unstable();
+    ks.dedup();
+    let mut sizes: Vec<(usize, usize)> = Vec::new();
+    for p in &curve.points {
+        if !sizes.contains(&(p.points, p.observed_points)) {
+            sizes.push((p.points, p.observed_points));
+        }
+    }
+    let _ = writeln!(
+        s,
+        "\n### Accuracy against speed\n\nOur one-shot pose (`PoseEstimator::estimate`, no ICP) \
+         with the shipped softmax weights (trained at 384×288 points, k = {}) at other point \
+         counts (m model × n observed) and other neighbours k of the DGCNN's graph: rotation \
+         accuracy at 15° on the first {} object-alone cases (each resampled as the speed table \
+         does), median time on the first {} of them ({} thread(s), {} runs each), and the ratio \
+         to Open3D's FGR at {} in this run. Each cell: acc@15° · time (× FGR).{}\n",
+        curve.trained_k,
+        curve.cases,
+        curve.pairs,
+        threads,
+        curve.repeats,
+        size_label(CURVE_REFERENCE),
+        curve
+            .note
+            .as_ref()
+            .map_or(String::new(), |n| format!(" Note: {n}."))
+    );
+    s.push_str("| m×n |");
+    for k in &ks {
+        let _ = write!(s, " k = {k} |");
+    }
+    s.push_str("\n|---|");
+    s.push_str(&"---:|".repeat(ks.len()));
+    s.push('\n');
+    for &size in &sizes {
+        let _ = write!(s, "| {}×{} |", size.0, size.1);
+        for &k in &ks {
+            match curve.at(size, k) {
+                Some(p) => {
+                    let t = p.time.median_seconds;
+                    let _ = write!(
+                        s,
+                        " {:.3} · {} ({}) |",
+                        p.rotation_acc_15,
+                        fmt_s(t),
+                        ratio(t, fgr)
+                    );
+                }
+                None => s.push_str(" – |"),
+            }
+        }
+        s.push('\n');
+    }
+    if let Some(fgr) = fgr {
+        let best = curve
+            .points
+            .iter()
+            .filter(|p| p.time.median_seconds.is_some_and(|t| t <= 0.5 * fgr))
+            .max_by(|a, b| a.rotation_acc_15.total_cmp(&b.rotation_acc_15));
+        let shipped = curve.at(CURVE_REFERENCE, curve.trained_k);
+        let _ = writeln!(
+            s,
+            "\nAt ≤ 0.5× FGR ({}): {}; the shipped operating point (384×288, k = {}): {}.",
+            fmt_s(Some(0.5 * fgr)),
+            best.map_or("no point of the curve".to_string(), |p| format!(
+                "best acc@15° {:.3} at {}×{}, k = {} ({})",
+                p.rotation_acc_15,
+                p.points,
+                p.observed_points,
+                p.k,
+                fmt_s(p.time.median_seconds)
+            )),
+            curve.trained_k,
+            shipped.map_or("not measured".to_string(), |p| format!(
+                "{:.3} ({})",
+                p.rotation_acc_15,
+                fmt_s(p.time.median_seconds)
+            ))
+        );
+    }
+    let _ = writeln!(s, "\n![speed-accuracy.svg](results/speed-accuracy.svg)");
+    s
+}
+
+/// The curve as a plot: acc@15° against milliseconds, a line per k through the sizes, and
+/// FGR's time at the operating point and half of it as vertical lines.
+fn plot_curve(path: &Path, curve: &SpeedCurve, fgr: Option<f64>) -> Result<()> {
+    let mut ks: Vec<usize> = curve.points.iter().map(|p| p.k).collect();
+    ks.sort_unstable();
+    ks.dedup();
+    let mut series: Vec<(String, Vec<(f64, f64)>)> = ks
+        .iter()
+        .map(|&k| {
+            let pts = curve
+                .points
+                .iter()
+                .filter(|p| p.k == k)
+                .filter_map(|p| Some((p.time.median_seconds? * 1e3, p.rotation_acc_15)))
+                .collect();
+            let trained = if k == curve.trained_k {
+                " (trained)"
+            } else {
+                ""
+            };
+            (format!("k = {k}{trained}"), pts)
+        })
+        .collect();
+    if let Some(f) = fgr {
+        let ms = f * 1e3;
+        series.push((
+            format!("FGR @{}", size_label(CURVE_REFERENCE)),
+            vec![(ms, 0.0), (ms, 1.0)],
+        ));
+        series.push(("0.5× FGR".into(), vec![(0.5 * ms, 0.0), (0.5 * ms, 1.0)]));
+    }
+    ic_eval::plot::plot_xy(
+        path,
+        "One-shot accuracy against time (sizes m×n along each line)",
+        ("median time per registration (ms)", "rotation acc@15°"),
+        1.0,
+        &series,
+    )?;
+    Ok(())
 }
 
 fn markdown(report: &Report, plots: &[(Set, Vec<PathBuf>)]) -> String {
@@ -902,6 +1041,16 @@ pub fn write(report: &Report, out: &Path) -> Result<Vec<PathBuf>> {
         written.extend(files.iter().cloned());
         plots.push((set.set, files));
     }
+    if let Some(curve) = report.speed.as_ref().and_then(|s| s.curve.as_ref()) {
+        let fgr = report.open3d_median("o3d-fgr", CURVE_REFERENCE);
+        for ext in ["svg", "png"] {
+            let path = plot_dir.join(format!("speed-accuracy.{ext}"));
+            let tmp = plot_dir.join(format!(".speed-accuracy.partial.{ext}"));
+            plot_curve(&tmp, curve, fgr)?;
+            std::fs::rename(&tmp, &path)?;
+            written.push(path);
+        }
+    }
     let md = out.join("results.md");
     write_atomic(&md, markdown(report, &plots).as_bytes())?;
     written.insert(0, md);
@@ -932,6 +1081,8 @@ mod tests {
             ppf_repeats: 1,
             threads: 1,
             repeats: 1,
+            timing_pairs: 1,
+            curve_cases: 0,
             train_steps: 1,
             out: dir.into(),
             work: dir.into(),
@@ -1149,5 +1300,65 @@ mod tests {
             md.contains("| cups | ours-softmax-verify | 6 | 5 | 7 | 6 | 4 | 1.50 |"),
             "{md}"
         );
+    }
+
+    #[test]
+    fn curve_section_names_the_best_point_under_half_fgr_and_the_shipped_one() {
+        use crate::bench::curve::{CurvePoint, SpeedCurve};
+        let point = |m: usize, n: usize, k: usize, acc: f64, ms: f64| CurvePoint {
+            points: m,
+            observed_points: n,
+            k,
+            rotation_acc_15: acc,
+            rotation_acc_5: acc / 2.0,
+            rotation_median_deg: 5.0,
+            failures: 0,
+            time: Timed {
+                label: String::new(),
+                median_seconds: Some(ms * 1e-3),
+                runs: vec![ms * 1e-3],
+                pair_medians: Vec::new(),
+                note: None,
+                error: None,
+            },
+        };
+        let curve = SpeedCurve {
+            head: "softmax".into(),
+            trained_k: 16,
+            cases: 200,
+            pairs: 10,
+            repeats: 5,
+            points: vec![
+                point(128, 96, 8, 0.40, 4.0),
+                point(256, 192, 8, 0.60, 9.0),
+                point(384, 288, 8, 0.70, 15.0),
+                point(128, 96, 16, 0.45, 5.0),
+                point(256, 192, 16, 0.65, 11.0),
+                point(384, 288, 16, 0.75, 20.0),
+            ],
+            note: None,
+        };
+        // FGR 20 ms: half is 10 ms, reached by 128×96 (both k) and 256×192 at k = 8 only.
+        let s = curve_section(&curve, Some(0.020), 2);
+        assert!(
+            s.contains("| 256×192 | 0.600 · 9.0 ms (0.45×) | 0.650 · 11.0 ms (0.55×) |"),
+            "{s}"
+        );
+        assert!(
+            s.contains("best acc@15° 0.600 at 256×192, k = 8 (9.0 ms)"),
+            "{s}"
+        );
+        assert!(s.contains("(384×288, k = 16): 0.750 (20.0 ms)"), "{s}");
+        // Without Open3D's time: the table without ratios and no verdict.
+        let s = curve_section(&curve, None, 2);
+        assert!(
+            s.contains("0.750 · 20.0 ms (–)") && !s.contains("0.5× FGR ("),
+            "{s}"
+        );
+        let tmp = crate::bench::common::tests::TempDir::new("curve-plot");
+        let svg = tmp.path().join("c.svg");
+        plot_curve(&svg, &curve, Some(0.020)).unwrap();
+        let text = std::fs::read_to_string(&svg).unwrap();
+        assert!(text.contains("k = 16 (trained)") && text.contains("0.5× FGR"));
     }
 }

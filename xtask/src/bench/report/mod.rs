@@ -43,6 +43,11 @@ pub struct Config {
     pub ppf_repeats: usize,
     pub threads: usize,
     pub repeats: usize,
+    /// Object-alone cases the registration times are measured on (ours and Open3D's; PPF the
+    /// first only).
+    pub timing_pairs: usize,
+    /// Object-alone cases of the accuracy/speed curve (0: none).
+    pub curve_cases: usize,
     pub train_steps: usize,
     pub out: PathBuf,
     pub work: PathBuf,
