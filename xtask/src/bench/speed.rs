@@ -6,8 +6,8 @@
 //!   repeats with 0.005 jitter when a cloud is smaller), `PoseEstimator::estimate` with and
 //!   without ICP, one warm-up then `repeats` runs per pair, the median of the pairs' medians —
 //!   the same cases and protocol as the peers' `--timing --cases DIR --timing-pairs K` mode (one
-//!   pair's time can swing several-fold with how fast a method converges on it: FGR took
-//!   6–28 ms on the same first case in different runs);
+//!   pair stands for a whole set badly where a method's work depends on the pair, e.g.
+//!   FPFH-RANSAC's 22–96 ms across the first ten cases at 384 × 288);
 //! - segmentation of one 640×480 depth map (the first room case);
 //! - CPU renderer views/s: a room scene at 640×480 and the object alone at 160×120;
 //! - training pairs/hour: a few real `Trainer::step`s of the `cpu` preset per head on samples
