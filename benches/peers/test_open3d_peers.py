@@ -230,6 +230,22 @@ def test_timing_writes_points_and_observed_points():
         assert all(0 < r["source_down"] <= r["points"] and 0 < r["target_down"] <= r["observed_points"] for r in fpfh)
 
 
+def probe_pipeline(run):
+    """A stand-in for open3d_peers.Pipeline whose `run(method, source, target)` is `run`."""
+
+    class Probe:
+        def __init__(self, o3d, args):
+            pass
+
+        def config(self):
+            return {}
+
+        def run(self, method, source, target):
+            return run(method, source, target)
+
+    return Probe
+
+
 def test_timing_resamples_the_model_and_the_observed_points_to_each_size():
     """In this interpreter (numpy and Open3D needed): a pair entry MxN resamples source.ply to M
     and target.ply to N points with the key "MxN"; a square entry N keeps the key str(N), the
@@ -241,16 +257,9 @@ def test_timing_resamples_the_model_and_the_observed_points_to_each_size():
         raise unittest.SkipTest(f"needs numpy and open3d: {e}")
     calls, seeds = [], []
 
-    class Probe:
-        def __init__(self, o3d, args):
-            pass
-
-        def config(self):
-            return {}
-
-        def run(self, method, source, target):
-            calls.append((method, np.array(source), np.array(target)))
-            return np.eye(4), 0.001, {"source_down": len(source), "target_down": len(target)}
+    def run(method, source, target):
+        calls.append((method, np.array(source), np.array(target)))
+        return np.eye(4), 0.001, {"source_down": len(source), "target_down": len(target)}
 
     class O3d:
         """Open3D with its random seed recorded."""
@@ -269,7 +278,7 @@ def test_timing_resamples_the_model_and_the_observed_points_to_each_size():
                   [0.1, -0.2, 2.8])
         real_import, saved = open3d_peers.import_open3d, (open3d_peers.import_open3d, open3d_peers.Pipeline)
         open3d_peers.import_open3d = lambda threads: O3d(real_import(threads))
-        open3d_peers.Pipeline = Probe
+        open3d_peers.Pipeline = probe_pipeline(run)
         try:
             args = open3d_peers.parse_args(["--timing", "--points", "256,300x200,600x700", "--repeats", "2",
                                             "--cases", str(cases), "--out", str(out), "--methods",
@@ -316,16 +325,9 @@ def test_timing_pairs_time_the_first_k_cases_and_report_the_median_of_their_medi
     # runs 7, 8, 3 (median 7). Median of the medians 4.5; of the six runs pooled 5.
     seconds = [100.0, 1.0, 2.0, 9.0, 100.0, 7.0, 8.0, 3.0]
 
-    class Probe:
-        def __init__(self, o3d, args):
-            pass
-
-        def config(self):
-            return {}
-
-        def run(self, method, source, target):
-            calls.append((np.array(source), np.array(target)))
-            return np.eye(4), seconds[len(calls) - 1], {}
+    def run(method, source, target):
+        calls.append((np.array(source), np.array(target)))
+        return np.eye(4), seconds[len(calls) - 1], {}
 
     with tempfile.TemporaryDirectory() as tmp:
         cases, out = Path(tmp) / "cases", Path(tmp) / "timing.json"
@@ -333,7 +335,7 @@ def test_timing_pairs_time_the_first_k_cases_and_report_the_median_of_their_medi
             make_case(cases / f"case_{i:05d}", box_surface(random.Random(10 + i), 400), axis_angle((1, 2, 3), 40 * i),
                       [0.1, -0.2, 2.8])
         saved = open3d_peers.Pipeline
-        open3d_peers.Pipeline = Probe
+        open3d_peers.Pipeline = probe_pipeline(run)
         try:
             args = open3d_peers.parse_args(["--timing", "--points", "300x200", "--repeats", "3", "--cases",
                                             str(cases), "--timing-pairs", "2", "--out", str(out), "--methods",

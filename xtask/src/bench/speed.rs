@@ -68,6 +68,20 @@ pub struct Timed {
     pub error: Option<String>,
 }
 
+impl Timed {
+    /// Nothing measured yet.
+    pub fn new(label: &str) -> Timed {
+        Timed {
+            label: label.to_string(),
+            median_seconds: None,
+            runs: Vec::new(),
+            pair_medians: Vec::new(),
+            note: None,
+            error: None,
+        }
+    }
+}
+
 /// Registration time of one method at one size.
 #[derive(Clone, Debug, Serialize)]
 pub struct RegTiming {
@@ -180,14 +194,7 @@ pub(crate) fn time_it<T, E: std::fmt::Display>(
     repeats: usize,
     mut f: impl FnMut() -> Result<T, E>,
 ) -> Timed {
-    let mut timed = Timed {
-        label: label.to_string(),
-        median_seconds: None,
-        runs: Vec::new(),
-        pair_medians: Vec::new(),
-        note: None,
-        error: None,
-    };
+    let mut timed = Timed::new(label);
     if let Err(e) = f() {
         timed.error = Some(e.to_string());
         return timed;
@@ -209,14 +216,7 @@ pub(crate) fn time_it<T, E: std::fmt::Display>(
 /// One quantity timed on several pairs (each by [`time_it`]): every run, each pair's median and
 /// the median of those; the first error ends it.
 pub(crate) fn combine_pairs(label: &str, pairs: Vec<Timed>) -> Timed {
-    let mut out = Timed {
-        label: label.to_string(),
-        median_seconds: None,
-        runs: Vec::new(),
-        pair_medians: Vec::new(),
-        note: None,
-        error: None,
-    };
+    let mut out = Timed::new(label);
     for t in pairs {
         if t.error.is_some() {
             out.error = t.error;
@@ -538,12 +538,9 @@ mod tests {
 
     fn timed(runs: &[f64]) -> Timed {
         Timed {
-            label: "x".into(),
             median_seconds: Some(ic_eval::median(runs)),
             runs: runs.to_vec(),
-            pair_medians: Vec::new(),
-            note: None,
-            error: None,
+            ..Timed::new("x")
         }
     }
 

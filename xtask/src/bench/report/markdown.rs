@@ -1314,12 +1314,9 @@ mod tests {
             rotation_median_deg: 5.0,
             failures: 0,
             time: Timed {
-                label: String::new(),
                 median_seconds: Some(ms * 1e-3),
                 runs: vec![ms * 1e-3],
-                pair_medians: Vec::new(),
-                note: None,
-                error: None,
+                ..Timed::new("")
             },
         };
         let curve = SpeedCurve {
