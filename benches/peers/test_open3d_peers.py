@@ -309,7 +309,6 @@ def test_timing_resamples_the_model_and_the_observed_points_to_each_size():
         assert seeds == want_seeds, (seeds, want_seeds)
 
 
-
 def test_timing_pairs_time_the_first_k_cases_and_report_the_median_of_their_medians():
     """In this interpreter (numpy and Open3D needed): `--timing-pairs 2` on a set of three cases
     times the first two (the first with a one-pair run's draws, the second with its own), and

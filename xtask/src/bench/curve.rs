@@ -21,7 +21,7 @@ use serde::Serialize;
 
 use crate::bench::cases::CaseSet;
 use crate::bench::speed::{
-    Timed, combine_pairs, estimator, pair_rng, read_points, resample, size_label, time_it,
+    Timed, estimator, read_points, resample_pair, size_label, time_estimates,
 };
 
 /// (model, observed) point counts of the curve: from a third of the operating point up to the
@@ -72,6 +72,25 @@ impl SpeedCurve {
             .iter()
             .find(|p| p.points == m && p.observed_points == n && p.k == k)
     }
+
+    /// The values of k measured, ascending.
+    pub fn ks(&self) -> Vec<usize> {
+        let mut ks: Vec<usize> = self.points.iter().map(|p| p.k).collect();
+        ks.sort_unstable();
+        ks.dedup();
+        ks
+    }
+
+    /// The (m, n) sizes measured, in the order measured.
+    pub fn sizes(&self) -> Vec<(usize, usize)> {
+        let mut sizes: Vec<(usize, usize)> = Vec::new();
+        for p in &self.points {
+            if !sizes.contains(&(p.points, p.observed_points)) {
+                sizes.push((p.points, p.observed_points));
+            }
+        }
+        sizes
+    }
 }
 
 /// One case: model points (model frame), observed points (camera frame), the true pose.
@@ -107,26 +126,19 @@ pub fn measure(
             })
         })
         .collect::<Result<Vec<_>>>()?;
-    let (shipped, note) = estimator(root, Head::Softmax, seed)?;
-    let trained_k = shipped.config().net.k;
+    let (mut e, note) = estimator(root, Head::Softmax, seed)?;
+    let trained_k = e.config().net.k;
+    e.recovery.refine = Refine::None;
     let bar = crate::bench::common::progress_bar((sizes.len() * ks.len()) as u64, "curve");
     let mut points = Vec::new();
-    let mut est = Some(shipped);
     for &k in ks {
-        let mut e = est.take().context("estimator")?.with_neighbours(k)?;
-        e.recovery.refine = Refine::None;
+        e = e.with_neighbours(k)?;
         for &(m, n) in sizes {
             bar.set_message(format!("k={k} n={}", size_label((m, n))));
             let inputs: Vec<(Vec<Vec3>, Vec<Vec3>)> = data
                 .iter()
                 .enumerate()
-                .map(|(i, c)| {
-                    let mut rng = pair_rng(seed, (m, n), i);
-                    (
-                        resample(&c.source, m, &mut rng),
-                        resample(&c.target, n, &mut rng),
-                    )
-                })
+                .map(|(i, c)| resample_pair((&c.source, &c.target), (m, n), seed, i))
                 .collect();
             let mut errors = Vec::with_capacity(cases);
             let mut failures = 0;
@@ -141,17 +153,8 @@ pub fn measure(
                 }
             }
             let label = format!("ours-softmax k={k} {}", size_label((m, n)));
-            let per_pair = inputs[..pairs]
-                .iter()
-                .map(|(x, y)| {
-                    time_it(&label, repeats, || {
-                        // A failed recovery still ran the network: its time counts.
-                        let _ = e.estimate(x, y);
-                        Ok::<_, std::convert::Infallible>(())
-                    })
-                })
-                .collect();
-            let time = combine_pairs(&label, per_pair);
+            // Failures are counted above; their time counts here.
+            let (time, _) = time_estimates(&e, &label, repeats, &inputs[..pairs]);
             let point = CurvePoint {
                 points: m,
                 observed_points: n,
@@ -173,7 +176,6 @@ pub fn measure(
             points.push(point);
             bar.inc(1);
         }
-        est = Some(e);
     }
     bar.finish_and_clear();
     Ok(SpeedCurve {

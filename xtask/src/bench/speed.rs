@@ -151,17 +151,23 @@ impl SplitMix {
     }
 }
 
-/// The resampling generator of the `index`-th case at (m, n) points: the speed table and the
-/// accuracy/speed curve draw the same points from the same case (the first case keeps the
+/// The `index`-th case's source and target resampled to m and n points: the speed table and
+/// the accuracy/speed curve draw the same points from the same case (the first case keeps the
 /// draws of a one-pair run).
-pub fn pair_rng(seed: u64, (m, n): (usize, usize), index: usize) -> SplitMix {
+pub fn resample_pair(
+    (source, target): (&[Vec3], &[Vec3]),
+    (m, n): (usize, usize),
+    seed: u64,
+    index: usize,
+) -> (Vec<Vec3>, Vec<Vec3>) {
     let key = if m == n {
         n as u64
     } else {
         (m as u64) << 32 | n as u64
     };
     let pair_key = (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-    SplitMix(seed ^ key.wrapping_mul(0x1000_0001) ^ pair_key)
+    let mut rng = SplitMix(seed ^ key.wrapping_mul(0x1000_0001) ^ pair_key);
+    (resample(source, m, &mut rng), resample(target, n, &mut rng))
 }
 
 /// Exactly `n` points: a random subset in file order when there are enough, else all of them
@@ -231,6 +237,30 @@ pub(crate) fn combine_pairs(label: &str, pairs: Vec<Timed>) -> Timed {
     out
 }
 
+/// `est.estimate` timed on each pair (one warm-up and `repeats` runs) and combined by
+/// [`combine_pairs`], and the last failed recovery's message: a failure still ran the network,
+/// so its time counts.
+pub(crate) fn time_estimates(
+    est: &PoseEstimator,
+    label: &str,
+    repeats: usize,
+    pairs: &[(Vec<Vec3>, Vec<Vec3>)],
+) -> (Timed, Option<String>) {
+    let mut failure = None;
+    let per_pair = pairs
+        .iter()
+        .map(|(x, y)| {
+            time_it(label, repeats, || {
+                if let Err(e) = est.estimate(x, y) {
+                    failure = Some(e.to_string());
+                }
+                Ok::<_, std::convert::Infallible>(())
+            })
+        })
+        .collect();
+    (combine_pairs(label, per_pair), failure)
+}
+
 pub(crate) fn read_points(path: &Path) -> Result<Vec<Vec3>> {
     Ok(ic_geometry::io::read_ply_cloud(path)
         .with_context(|| format!("reading {}", path.display()))?
@@ -290,10 +320,7 @@ pub fn measure(
             let resampled: Vec<_> = clouds
                 .iter()
                 .enumerate()
-                .map(|(i, (source, target))| {
-                    let mut rng = pair_rng(seed, (m, n), i);
-                    (resample(source, m, &mut rng), resample(target, n, &mut rng))
-                })
+                .map(|(i, (source, target))| resample_pair((source, target), (m, n), seed, i))
                 .collect();
             for refine in [Refine::None, Refine::Icp] {
                 est.recovery.refine = refine;
@@ -305,19 +332,7 @@ pub fn measure(
                 bar.set_message(format!("{method} n={}", size_label((m, n))));
                 // A failed recovery (untrained weights can give degenerate matches) still ran
                 // the network: time it, and say so.
-                let mut failure = None;
-                let per_pair = resampled
-                    .iter()
-                    .map(|(x, y)| {
-                        time_it(&method, repeats, || {
-                            if let Err(e) = est.estimate(x, y) {
-                                failure = Some(e.to_string());
-                            }
-                            Ok::<_, std::convert::Infallible>(())
-                        })
-                    })
-                    .collect();
-                let mut timed = combine_pairs(&method, per_pair);
+                let (mut timed, failure) = time_estimates(&est, &method, repeats, &resampled);
                 timed.note = match (note.clone(), failure) {
                     (n, None) => n,
                     (n, Some(f)) => Some(

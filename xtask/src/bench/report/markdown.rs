@@ -636,7 +636,7 @@ fn speed_section(report: &Report, speed: &Speed) -> String {
          renderer is the CPU rasteriser the training uses.\n",
     );
     if let Some(curve) = &speed.curve {
-        s.push_str(&curve_section(curve, fgr((384, 288)), speed.threads));
+        s.push_str(&curve_section(curve, fgr(CURVE_REFERENCE), speed.threads));
     }
     s
 }
@@ -648,15 +648,7 @@ const CURVE_REFERENCE: (usize, usize) = (384, 288);
 /// per size and k), the best point at ≤ 0.5× FGR, and the plot's link.
 fn curve_section(curve: &SpeedCurve, fgr: Option<f64>, threads: usize) -> String {
     let mut s = String::new();
-    let mut ks: Vec<usize> = curve.points.iter().map(|p| p.k).collect();
-    ks.sort_unstable();
-    ks.dedup();
-    let mut sizes: Vec<(usize, usize)> = Vec::new();
-    for p in &curve.points {
-        if !sizes.contains(&(p.points, p.observed_points)) {
-            sizes.push((p.points, p.observed_points));
-        }
-    }
+    let (ks, sizes) = (curve.ks(), curve.sizes());
     let _ = writeln!(
         s,
         "\n### Accuracy against speed\n\nOur one-shot pose (`PoseEstimator::estimate`, no ICP) \
@@ -736,10 +728,8 @@ fn curve_section(curve: &SpeedCurve, fgr: Option<f64>, threads: usize) -> String
 /// The curve as a plot: acc@15° against milliseconds, a line per k through the sizes, and
 /// FGR's time at the operating point and half of it as vertical lines.
 fn plot_curve(path: &Path, curve: &SpeedCurve, fgr: Option<f64>) -> Result<()> {
-    let mut ks: Vec<usize> = curve.points.iter().map(|p| p.k).collect();
-    ks.sort_unstable();
-    ks.dedup();
-    let mut series: Vec<(String, Vec<(f64, f64)>)> = ks
+    let mut series: Vec<(String, Vec<(f64, f64)>)> = curve
+        .ks()
         .iter()
         .map(|&k| {
             let pts = curve
