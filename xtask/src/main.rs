@@ -42,10 +42,13 @@
 //! - `cargo xtask seg-post --model FILE --out FILE [--pixel-threshold …]` rewrites a
 //!   segmentation checkpoint's post-processing settings and inference input size (chosen on
 //!   validation scenes).
+//! - `cargo xtask plot-runs --run NAME=RUN … --out FILE.svg [--metric COLUMN]` draws the
+//!   learning curves of training runs (their `train.csv` and `val.csv`) in one plot.
 
 mod bench;
 mod clutter;
 mod clutter_calibration;
+mod curves;
 mod data;
 mod pose;
 mod seg;
@@ -106,6 +109,9 @@ enum Cmd {
     /// Find each object's rotational symmetries (discrete and continuous) on its normalised
     /// mesh: a table, and JSON with `--out`.
     Symmetries(symmetries::SymmetriesArgs),
+    /// Learning curves of training runs in one SVG or PNG: the training loss above a
+    /// validation column, against the iteration (e.g. a run from scratch against a fine-tune).
+    PlotRuns(curves::PlotRunsArgs),
 }
 
 /// Which crate owns each benchmark file under `benches/`.
@@ -158,6 +164,7 @@ fn main() -> std::process::ExitCode {
             seg::set_post(args)
         }
         Cmd::VerifyReport(args) => verify_report::run(args),
+        Cmd::PlotRuns(args) => curves::run(args),
         Cmd::FitClutterCalibration(args) => clutter_calibration::run(args),
         Cmd::Symmetries(args) => {
             init_tracing();

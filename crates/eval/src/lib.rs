@@ -40,7 +40,9 @@ pub use errors::{
     translation_error_sq,
 };
 pub use metrics::{Summary, accuracy, accuracy_curve, auc, map_yi2018, median, per_object};
-pub use plot::{Curve, plot_accuracy_curves, plot_accuracy_curves_titled, plot_xy};
+pub use plot::{
+    Curve, plot_accuracy_curves, plot_accuracy_curves_titled, plot_learning_curves, plot_xy,
+};
 pub use report::{MethodResult, markdown_table, write_json};
 
 use std::path::PathBuf;

@@ -229,6 +229,105 @@ where
     legend_and_present(&mut chart, &root, SeriesLabelPosition::LowerRight)
 }
 
+/// Learning curves of training runs, two panels over a shared x axis (e.g. iterations):
+/// `top` (e.g. the training loss, its y range fitted to the data) above `bottom` (e.g. a
+/// validation metric; its y range is [0, 1] when every value lies there, else fitted), one
+/// line per run in the same colour in both panels, to `path` (.png or .svg).
+pub fn plot_learning_curves(
+    path: &Path,
+    title: &str,
+    (x_label, top_label, bottom_label): (&str, &str, &str),
+    top: &[(String, Vec<(f64, f64)>)],
+    bottom: &[(String, Vec<(f64, f64)>)],
+) -> Result<(), EvalError> {
+    let labels = (x_label, top_label, bottom_label);
+    draw_to_file!(path, (820, 720), |root| draw_learning(
+        root, title, labels, top, bottom
+    ))
+}
+
+/// The x range shared by both panels and a padded y range of `series` (`unit`: [0, 1] when
+/// every value lies in it). The y range leaves out the first 2 % of the x axis, where a loss
+/// from scratch starts an order of magnitude above where it spends the run.
+fn ranges(
+    series: &[(String, Vec<(f64, f64)>)],
+    unit: bool,
+) -> (std::ops::Range<f64>, std::ops::Range<f64>) {
+    let points = || series.iter().flat_map(|s| s.1.iter().copied());
+    let x_max = points().map(|p| p.0).fold(1.0f64, f64::max);
+    let skip = if points().any(|p| p.0 >= 0.02 * x_max) {
+        0.02 * x_max
+    } else {
+        f64::NEG_INFINITY
+    };
+    let (lo, hi) = points()
+        .filter(|p| p.0 >= skip)
+        .map(|p| p.1)
+        .filter(|y| y.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), y| {
+            (a.min(y), b.max(y))
+        });
+    let y = if !lo.is_finite() || (unit && lo >= 0.0 && hi <= 1.0) {
+        0.0..1.0
+    } else {
+        let pad = ((hi - lo) * 0.05).max(1e-6);
+        (lo - pad)..(hi + pad)
+    };
+    (0.0..x_max * 1.02, y)
+}
+
+fn draw_learning<DB: DrawingBackend>(
+    root: DrawingArea<DB, plotters::coord::Shift>,
+    title: &str,
+    (x_label, top_label, bottom_label): (&str, &str, &str),
+    top: &[(String, Vec<(f64, f64)>)],
+    bottom: &[(String, Vec<(f64, f64)>)],
+) -> Result<(), EvalError>
+where
+    DB::ErrorType: 'static,
+{
+    let err = |e: DrawingAreaErrorKind<DB::ErrorType>| EvalError::Plot(e.to_string());
+    root.fill(&WHITE).map_err(err)?;
+    let root = root.titled(title, (FONT_NAME, 20)).map_err(err)?;
+    let (upper, lower) = root.split_vertically(root.dim_in_pixel().1 / 2);
+    let (x_top, _) = ranges(top, false);
+    let (x_bottom, _) = ranges(bottom, true);
+    let x = 0.0..x_top.end.max(x_bottom.end);
+    for (area, series, y_label, unit) in [
+        (&upper, top, top_label, false),
+        (&lower, bottom, bottom_label, true),
+    ] {
+        let (_, y) = ranges(series, unit);
+        let mut chart = ChartBuilder::on(area)
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(x.clone(), y)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(y_label)
+            .label_style((FONT_NAME, 12))
+            .axis_desc_style((FONT_NAME, 14))
+            .draw()
+            .map_err(err)?;
+        for (i, (name, points)) in series.iter().enumerate() {
+            let colour = Palette99::pick(i).to_rgba();
+            labelled_line(&mut chart, points.clone(), colour, name)?;
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .label_font((FONT_NAME, 12))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()
+            .map_err(err)?;
+    }
+    root.present().map_err(err)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -278,6 +377,25 @@ mod tests {
                 .unwrap()
                 .contains("accuracy against K")
         );
+        let curves = dir.path().join("curves.svg");
+        plot_learning_curves(
+            &curves,
+            "two runs",
+            ("iteration", "loss", "acc@15°"),
+            &[
+                ("scratch".into(), vec![(1.0, 9.0), (500.0, 3.5)]),
+                ("fine-tune".into(), vec![(1.0, 3.6), (500.0, 3.2)]),
+            ],
+            &[
+                ("scratch".into(), vec![(250.0, 0.1), (500.0, 0.3)]),
+                ("fine-tune".into(), vec![(250.0, 0.6), (500.0, 0.62)]),
+            ],
+        )
+        .unwrap();
+        let text = std::fs::read_to_string(&curves).unwrap();
+        // Two panels, each with both runs and their two legend marks.
+        assert_eq!(text.matches(r#"stroke-width="2""#).count(), 8, "{text}");
+        assert!(text.contains("two runs") && text.contains("fine-tune"));
         if let Ok(keep) = std::env::var("IC_EVAL_KEEP_PLOT") {
             plot_accuracy_curves(Path::new(&keep), &results, Curve::Rotation, 30.0).unwrap();
         }
