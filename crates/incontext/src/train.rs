@@ -82,6 +82,13 @@ pub struct CommonArgs {
     /// Adam's step size (fine-tuning wants a small one).
     #[arg(long, default_value_t = 1e-4)]
     pub learning_rate: f64,
+    /// Decay the learning rate along a half cosine from --learning-rate (from the current
+    /// iteration on) to --lr-floor at this iteration; resumed runs keep following it.
+    #[arg(long)]
+    pub lr_decay_to: Option<u64>,
+    /// The learning rate --lr-decay-to ends at.
+    #[arg(long, default_value_t = 1e-6)]
+    pub lr_floor: f64,
     /// Samples per iteration (default: the network's).
     #[arg(long)]
     pub batch_size: Option<usize>,
@@ -381,6 +388,8 @@ fn train_pose(a: &PoseTrainArgs, seed: u64) -> Result<Value> {
         validate_every: Some(c.validate_every),
         validation_count: Some(c.validation_count),
         precise_bn: 0,
+        lr_decay_to: c.lr_decay_to,
+        lr_floor: c.lr_floor,
     };
     let objects = ic_train::ObjectsSpec::every_mesh_of(&c.objects);
     // Every mesh trains and validates: one corpus, loaded (and checked) once.
@@ -440,6 +449,8 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
         validation_count: c.validation_count as u64,
         batch_size: c.batch_size,
         learning_rate: Some(c.learning_rate),
+        lr_decay_to: c.lr_decay_to,
+        lr_floor: c.lr_floor,
     };
     let outcome =
         ic_train::seg::train_objects(&args, start.path(), corpus.clone(), corpus, control(c))

@@ -79,6 +79,34 @@ pub struct TrainState {
     pub seed: u64,
     /// Adam's step count.
     pub adam_step: u64,
+    /// The learning-rate decay the run follows, if any (checkpoints of older runs have none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lr_decay: Option<LrDecay>,
+}
+
+/// A half-cosine decay of Adam's learning rate: `start` at iteration `from`, `floor` at
+/// iteration `to` and after, `floor + (start − floor)·(1 + cos(π·(i − from)/(to − from)))/2`
+/// between. Saved with the run's checkpoints, so a resumed run goes on along it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LrDecay {
+    pub from: u64,
+    pub to: u64,
+    pub start: f64,
+    pub floor: f64,
+}
+
+impl LrDecay {
+    /// The learning rate of the step that completes iteration `iteration + 1`.
+    pub fn rate(&self, iteration: u64) -> f64 {
+        if iteration <= self.from {
+            return self.start;
+        }
+        if iteration >= self.to {
+            return self.floor;
+        }
+        let x = (iteration - self.from) as f64 / (self.to - self.from) as f64;
+        self.floor + (self.start - self.floor) * 0.5 * (1.0 + (std::f64::consts::PI * x).cos())
+    }
 }
 
 fn checkpoint_error<N: Network>(path: &Path, message: impl Into<String>) -> N::Error {
@@ -108,6 +136,7 @@ pub struct Trainer<N: Network> {
     iteration: u64,
     seed: u64,
     device: Device,
+    lr_decay: Option<LrDecay>,
 }
 
 impl<N: Network> Trainer<N> {
@@ -131,6 +160,7 @@ impl<N: Network> Trainer<N> {
             iteration: 0,
             seed,
             device,
+            lr_decay: None,
         })
     }
 
@@ -147,6 +177,10 @@ impl<N: Network> Trainer<N> {
             &t.device,
         )?;
         t.iteration = state.iteration;
+        t.lr_decay = state.lr_decay;
+        if let Some(d) = t.lr_decay {
+            t.set_rate(d.rate(t.iteration));
+        }
         Ok(t)
     }
 
@@ -175,9 +209,63 @@ impl<N: Network> Trainer<N> {
 
     /// Changes the learning rate from the next step on (a step schedule across a resume);
     /// the configuration saved with later checkpoints records the new rate.
+    /// A decay set before ([`Trainer::decay_learning_rate`]) ends here: the rate stays.
     pub fn set_learning_rate(&mut self, learning_rate: f64) {
+        self.lr_decay = None;
+        self.set_rate(learning_rate);
+    }
+
+    fn set_rate(&mut self, learning_rate: f64) {
         N::set_learning_rate(&mut self.config, learning_rate);
         self.adam.learning_rate = learning_rate;
+    }
+
+    /// From the next step on, decays the learning rate from its current value to `floor` at
+    /// iteration `to` along a half cosine ([`LrDecay`]), then keeps `floor`; saved with the
+    /// checkpoints, so resumed runs follow it. `to` at or before the current iteration sets
+    /// `floor` at once.
+    pub fn decay_learning_rate(&mut self, to: u64, floor: f64) {
+        self.lr_decay = Some(LrDecay {
+            from: self.iteration,
+            to: to.max(self.iteration),
+            start: N::learning_rate(&self.config),
+            floor,
+        });
+        self.set_rate(self.current_rate());
+    }
+
+    /// The decay the run follows, if any.
+    pub fn lr_decay(&self) -> Option<LrDecay> {
+        self.lr_decay
+    }
+
+    /// The training commands' `--lr-decay-to TO --lr-floor FLOOR`: starts the decay (logged)
+    /// when `to` is given; otherwise logs the one a resumed run goes on with.
+    pub fn start_lr_decay(&mut self, to: Option<u64>, floor: f64) -> anyhow::Result<()> {
+        if let Some(to) = to {
+            if !(floor > 0.0 && floor.is_finite()) {
+                anyhow::bail!("--lr-floor {floor}: must be a positive learning rate");
+            }
+            self.decay_learning_rate(to, floor);
+        }
+        if let Some(d) = self.lr_decay {
+            tracing::info!(
+                "learning rate {:.3e} → {:.3e} along a half cosine over iterations {}–{} (now {:.3e})",
+                d.start,
+                d.floor,
+                d.from,
+                d.to,
+                self.current_rate()
+            );
+        }
+        Ok(())
+    }
+
+    fn current_rate(&self) -> f64 {
+        match self.lr_decay {
+            Some(d) => d.rate(self.iteration),
+            None => self.adam.learning_rate,
+        }
     }
 
     /// Changes the planned iteration count (e.g. to extend a resumed run).
@@ -224,6 +312,9 @@ impl<N: Network> Trainer<N> {
 
     /// Adam's step over `grads`, and one more completed iteration.
     fn apply(&mut self, grads: &candle_core::backprop::GradStore) -> Result<(), N::Error> {
+        if self.lr_decay.is_some() {
+            self.set_rate(self.current_rate());
+        }
         self.adam.step(grads)?;
         self.iteration += 1;
         Ok(())
@@ -241,6 +332,7 @@ impl<N: Network> Trainer<N> {
                 iteration: self.iteration,
                 seed: self.seed,
                 adam_step: self.adam.step_count(),
+                lr_decay: self.lr_decay,
             };
             meta.insert(
                 N::STATE_KEY.to_string(),

@@ -232,6 +232,15 @@ pub struct TrainArgs {
     pub observed_points: Option<usize>,
     #[arg(long)]
     pub learning_rate: Option<f64>,
+    /// From this run's current iteration and learning rate (after `--learning-rate`), decay
+    /// the learning rate along a half cosine to `--lr-floor` at this iteration, then keep it;
+    /// saved with the checkpoints, so later `--resume`s follow it without the flag (a new
+    /// `--learning-rate` alone ends it).
+    #[arg(long)]
+    pub lr_decay_to: Option<u64>,
+    /// The learning rate `--lr-decay-to` ends at.
+    #[arg(long, default_value_t = 1e-5)]
+    pub lr_floor: f64,
     #[arg(long)]
     pub validate_every: Option<u64>,
     #[arg(long)]
@@ -396,7 +405,8 @@ pub fn train_corpora(
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let latest = args.out.join("latest.safetensors");
-    let (trainer, resuming) = make_trainer(args, &latest)?;
+    let (mut trainer, resuming) = make_trainer(args, &latest)?;
+    trainer.start_lr_decay(args.lr_decay_to, args.lr_floor)?;
     let cfg = trainer.config().clone();
     let seed = trainer.seed();
     tracing::info!("seed {seed}");

@@ -251,6 +251,15 @@ pub struct TrainArgs {
     pub batch_size: Option<usize>,
     #[arg(long)]
     pub learning_rate: Option<f64>,
+    /// From this run's current iteration and learning rate (after `--learning-rate`), decay
+    /// the learning rate along a half cosine to `--lr-floor` at this iteration, then keep it;
+    /// saved with the checkpoints, so later `--resume`s follow it without the flag (a new
+    /// `--learning-rate` alone ends it).
+    #[arg(long)]
+    pub lr_decay_to: Option<u64>,
+    /// The learning rate `--lr-decay-to` ends at.
+    #[arg(long, default_value_t = 1e-5)]
+    pub lr_floor: f64,
 }
 
 #[derive(clap::Args)]
@@ -611,7 +620,8 @@ pub fn train_objects(
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let latest = args.out.join("latest.safetensors");
-    let trainer = make_trainer(args, &latest, init)?;
+    let mut trainer = make_trainer(args, &latest, init)?;
+    trainer.start_lr_decay(args.lr_decay_to, args.lr_floor)?;
     let cfg = trainer.config().clone();
     let seed = trainer.seed();
     tracing::info!("seed {seed}");

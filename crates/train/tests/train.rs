@@ -35,6 +35,8 @@ fn pose_args(out: &Path, iterations: u64, resume: bool) -> ic_train::pose::Train
         validate_every: Some(2),
         validation_count: Some(2),
         precise_bn: 0,
+        lr_decay_to: None,
+        lr_floor: 1e-5,
     }
 }
 
@@ -196,6 +198,69 @@ fn precise_bn_changes_only_the_running_statistics_not_the_training() {
 }
 
 #[test]
+fn a_learning_rate_decay_is_followed_across_a_resume_to_the_same_weights() {
+    let dir = tempfile::tempdir().unwrap();
+    let (straight, split) = (dir.path().join("straight"), dir.path().join("split"));
+    let decayed =
+        |out: &Path, iterations: u64, resume: bool, to: Option<u64>| ic_train::pose::TrainArgs {
+            learning_rate: Some(1e-2),
+            lr_decay_to: to,
+            lr_floor: 1e-4,
+            ..pose_args(out, iterations, resume)
+        };
+    ic_train::pose::train(&decayed(&straight, 4, false, Some(4)), control(never())).unwrap();
+    ic_train::pose::train(&decayed(&split, 2, false, Some(4)), control(never())).unwrap();
+    // Resumed without the flags (and without --learning-rate, which would end the decay):
+    // the checkpoint carries the decay.
+    let resumed = ic_train::pose::TrainArgs {
+        learning_rate: None,
+        ..decayed(&split, 4, true, None)
+    };
+    ic_train::pose::train(&resumed, control(never())).unwrap();
+    assert_same_checkpoint(
+        &straight.join("latest.safetensors"),
+        &split.join("latest.safetensors"),
+    );
+    let state =
+        ic_train::read_state::<ic_pose::PoseNet>(&straight.join("latest.safetensors")).unwrap();
+    let decay = state.lr_decay.expect("the decay is saved");
+    assert_eq!((decay.from, decay.to), (0, 4));
+    assert_eq!((decay.start, decay.floor), (1e-2, 1e-4));
+    // The rate saved with the configuration is the last step's: on the way down, not the floor.
+    let cfg = ic_pose::checkpoint::read_config(&straight.join("latest.safetensors")).unwrap();
+    assert_eq!(cfg.train.learning_rate, decay.rate(3));
+    assert!(decay.rate(3) > 1e-4 && decay.rate(3) < decay.rate(1));
+    // Without the decay the run ends elsewhere: the decay changed the training.
+    let plain = dir.path().join("plain");
+    let args = ic_train::pose::TrainArgs {
+        learning_rate: Some(1e-2),
+        ..pose_args(&plain, 4, false)
+    };
+    ic_train::pose::train(&args, control(never())).unwrap();
+    let cols = [0, 1];
+    assert_ne!(
+        rows(&plain.join("train.csv"), &cols),
+        rows(&straight.join("train.csv"), &cols)
+    );
+}
+
+#[test]
+fn a_half_cosine_decay_starts_at_its_rate_and_ends_at_its_floor() {
+    let d = ic_train::LrDecay {
+        from: 10,
+        to: 20,
+        start: 1e-3,
+        floor: 1e-5,
+    };
+    assert_eq!(d.rate(0), 1e-3);
+    assert_eq!(d.rate(10), 1e-3);
+    assert!((d.rate(15) - (1e-3 + 1e-5) / 2.0).abs() < 1e-12);
+    assert!(d.rate(12) > d.rate(15) && d.rate(15) > d.rate(18));
+    assert_eq!(d.rate(20), 1e-5);
+    assert_eq!(d.rate(1000), 1e-5);
+}
+
+#[test]
 fn a_stop_request_or_a_deadline_saves_a_resumable_checkpoint() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("run");
@@ -243,6 +308,8 @@ fn seg_args(out: &Path, iterations: u64, resume: bool) -> ic_train::seg::TrainAr
         validation_count: 2,
         batch_size: None,
         learning_rate: None,
+        lr_decay_to: None,
+        lr_floor: 1e-5,
     }
 }
 
