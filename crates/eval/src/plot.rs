@@ -49,6 +49,40 @@ macro_rules! draw_to_file {
 }
 pub(crate) use draw_to_file;
 
+/// A chart of `x` × `y` on `area` with its axes drawn and labelled (and a caption when
+/// given): the frame every plot of this module starts from.
+pub(crate) fn labelled_chart<'a, DB: DrawingBackend + 'a>(
+    area: &DrawingArea<DB, plotters::coord::Shift>,
+    caption: Option<(&str, u32)>,
+    x: std::ops::Range<f64>,
+    y: std::ops::Range<f64>,
+    (x_label, y_label): (&str, &str),
+) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, EvalError>
+where
+    DB::ErrorType: 'static,
+{
+    let err = |e: DrawingAreaErrorKind<DB::ErrorType>| EvalError::Plot(e.to_string());
+    let mut builder = ChartBuilder::on(area);
+    if let Some((text, size)) = caption {
+        builder.caption(text, (FONT_NAME, size));
+    }
+    let mut chart = builder
+        .margin(16)
+        .x_label_area_size(44)
+        .y_label_area_size(56)
+        .build_cartesian_2d(x, y)
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .x_desc(x_label)
+        .y_desc(y_label)
+        .label_style((FONT_NAME, 13))
+        .axis_desc_style((FONT_NAME, 15))
+        .draw()
+        .map_err(err)?;
+    Ok(chart)
+}
+
 /// Draws a 2-px line through `points` in `colour`, with `name` in the legend.
 pub(crate) fn labelled_line<'a, DB: DrawingBackend + 'a>(
     chart: &mut ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
@@ -142,21 +176,13 @@ where
         ),
     };
     let title = title.unwrap_or(title_default);
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, (FONT_NAME, 22))
-        .margin(16)
-        .x_label_area_size(44)
-        .y_label_area_size(56)
-        .build_cartesian_2d(0.0..max, 0.0..1.0)
-        .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc(x_label)
-        .y_desc("accuracy")
-        .label_style((FONT_NAME, 13))
-        .axis_desc_style((FONT_NAME, 15))
-        .draw()
-        .map_err(err)?;
+    let mut chart = labelled_chart(
+        &root,
+        Some((title, 22)),
+        0.0..max,
+        0.0..1.0,
+        (x_label, "accuracy"),
+    )?;
     let steps = 200;
     for (i, r) in results.iter().enumerate() {
         let errors = match curve {
@@ -204,21 +230,13 @@ where
     root.fill(&WHITE).map_err(err)?;
     let xs = series.iter().flat_map(|s| s.1.iter().map(|p| p.0));
     let x_max = xs.fold(1.0f64, f64::max) * 1.05;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, (FONT_NAME, 20))
-        .margin(16)
-        .x_label_area_size(44)
-        .y_label_area_size(56)
-        .build_cartesian_2d(0.0..x_max, 0.0..y_max)
-        .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc(x_label)
-        .y_desc(y_label)
-        .label_style((FONT_NAME, 13))
-        .axis_desc_style((FONT_NAME, 15))
-        .draw()
-        .map_err(err)?;
+    let mut chart = labelled_chart(
+        &root,
+        Some((title, 20)),
+        0.0..x_max,
+        0.0..y_max,
+        (x_label, y_label),
+    )?;
     for (i, (name, points)) in series.iter().enumerate() {
         let colour = Palette99::pick(i).to_rgba();
         labelled_line(&mut chart, points.clone(), colour, name)?;
@@ -298,20 +316,7 @@ where
         (&lower, bottom, bottom_label, true),
     ] {
         let (_, y) = ranges(series, unit);
-        let mut chart = ChartBuilder::on(area)
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(60)
-            .build_cartesian_2d(x.clone(), y)
-            .map_err(err)?;
-        chart
-            .configure_mesh()
-            .x_desc(x_label)
-            .y_desc(y_label)
-            .label_style((FONT_NAME, 12))
-            .axis_desc_style((FONT_NAME, 14))
-            .draw()
-            .map_err(err)?;
+        let mut chart = labelled_chart(area, None, x.clone(), y, (x_label, y_label))?;
         for (i, (name, points)) in series.iter().enumerate() {
             let colour = Palette99::pick(i).to_rgba();
             labelled_line(&mut chart, points.clone(), colour, name)?;
