@@ -132,10 +132,10 @@ pub fn run(args: PlotRunsArgs) -> Result<()> {
         top.push((name.clone(), train.series("loss_avg", train_path)?));
         bottom.push((name.clone(), val.series(&metric, val_path)?));
     }
-    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("{}", dir.display()))?;
-    }
-    // Written next to the output, then renamed: an earlier plot is never left half-written.
+    ic_geometry::io::create_parent_dir(&args.out)
+        .with_context(|| format!("creating the folder of {}", args.out.display()))?;
+    // Written next to the output, then renamed: an earlier plot is never left half-written,
+    // and a failed one leaves no temporary file behind.
     let tmp = args.out.with_extension(format!(
         "tmp.{}",
         args.out
@@ -143,7 +143,7 @@ pub fn run(args: PlotRunsArgs) -> Result<()> {
             .and_then(|e| e.to_str())
             .unwrap_or("svg")
     ));
-    ic_eval::plot_learning_curves(
+    let written = ic_eval::plot_learning_curves(
         &tmp,
         &args.title,
         (
@@ -153,8 +153,15 @@ pub fn run(args: PlotRunsArgs) -> Result<()> {
         ),
         &top,
         &bottom,
-    )?;
-    std::fs::rename(&tmp, &args.out).with_context(|| format!("{}", args.out.display()))?;
+    )
+    .map_err(anyhow::Error::from)
+    .and_then(|()| {
+        std::fs::rename(&tmp, &args.out).with_context(|| format!("{}", args.out.display()))
+    });
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written?;
     eprintln!("wrote {}", args.out.display());
     Ok(())
 }

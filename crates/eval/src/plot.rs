@@ -110,7 +110,18 @@ pub(crate) fn legend_and_present<'a, DB: DrawingBackend + 'a>(
 where
     DB::ErrorType: 'static,
 {
-    let err = |e: DrawingAreaErrorKind<DB::ErrorType>| EvalError::Plot(e.to_string());
+    draw_legend(chart, position)?;
+    root.present().map_err(|e| EvalError::Plot(e.to_string()))
+}
+
+/// Draws the legend of `chart` at `position`.
+pub(crate) fn draw_legend<'a, DB: DrawingBackend + 'a>(
+    chart: &mut ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    position: SeriesLabelPosition,
+) -> Result<(), EvalError>
+where
+    DB::ErrorType: 'static,
+{
     chart
         .configure_series_labels()
         .position(position)
@@ -118,8 +129,7 @@ where
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .draw()
-        .map_err(err)?;
-    root.present().map_err(err)
+        .map_err(|e| EvalError::Plot(e.to_string()))
 }
 
 /// Which error a curve shows.
@@ -308,27 +318,19 @@ where
     root.fill(&WHITE).map_err(err)?;
     let root = root.titled(title, (FONT_NAME, 20)).map_err(err)?;
     let (upper, lower) = root.split_vertically(root.dim_in_pixel().1 / 2);
-    let (x_top, _) = ranges(top, false);
-    let (x_bottom, _) = ranges(bottom, true);
+    let (x_top, y_top) = ranges(top, false);
+    let (x_bottom, y_bottom) = ranges(bottom, true);
     let x = 0.0..x_top.end.max(x_bottom.end);
-    for (area, series, y_label, unit) in [
-        (&upper, top, top_label, false),
-        (&lower, bottom, bottom_label, true),
+    for (area, series, y_label, y) in [
+        (&upper, top, top_label, y_top),
+        (&lower, bottom, bottom_label, y_bottom),
     ] {
-        let (_, y) = ranges(series, unit);
         let mut chart = labelled_chart(area, None, x.clone(), y, (x_label, y_label))?;
         for (i, (name, points)) in series.iter().enumerate() {
             let colour = Palette99::pick(i).to_rgba();
             labelled_line(&mut chart, points.clone(), colour, name)?;
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .label_font((FONT_NAME, 12))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()
-            .map_err(err)?;
+        draw_legend(&mut chart, SeriesLabelPosition::UpperRight)?;
     }
     root.present().map_err(err)
 }
