@@ -134,17 +134,9 @@ pub fn run(args: PlotRunsArgs) -> Result<()> {
     }
     ic_geometry::io::create_parent_dir(&args.out)
         .with_context(|| format!("creating the folder of {}", args.out.display()))?;
-    // Written next to the output, then renamed: an earlier plot is never left half-written,
-    // and a failed one leaves no temporary file behind.
-    let tmp = args.out.with_extension(format!(
-        "tmp.{}",
-        args.out
-            .extension()
-            .and_then(|e| e.to_str())
-            .unwrap_or("svg")
-    ));
-    let written = ic_eval::plot_learning_curves(
-        &tmp,
+    // ic_eval draws into a temporary file and renames it into place.
+    ic_eval::plot_learning_curves(
+        &args.out,
         &args.title,
         (
             "iteration",
@@ -153,15 +145,7 @@ pub fn run(args: PlotRunsArgs) -> Result<()> {
         ),
         &top,
         &bottom,
-    )
-    .map_err(anyhow::Error::from)
-    .and_then(|()| {
-        std::fs::rename(&tmp, &args.out).with_context(|| format!("{}", args.out.display()))
-    });
-    if written.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    written?;
+    )?;
     eprintln!("wrote {}", args.out.display());
     Ok(())
 }

@@ -25,7 +25,10 @@ pub(crate) fn register_font() -> Result<(), EvalError> {
 
 /// Registers the font, then calls `$draw` (a closure taking the drawing area) with a PNG or an
 /// SVG drawing area of `$size` for `$path`, chosen by the file's extension; errors name the
-/// file. A macro, because the two backends are different types.
+/// file. The plot is drawn into a hidden temporary file beside `$path` (`.NAME.PID.partial.EXT`)
+/// and renamed over it once complete, so an earlier plot is never left half-written, and a
+/// failed plot leaves no temporary file behind. A macro, because the two backends are
+/// different types.
 macro_rules! draw_to_file {
     ($path:expr, $size:expr, $draw:expr) => {{
         let path: &std::path::Path = $path;
@@ -34,20 +37,42 @@ macro_rules! draw_to_file {
             .extension()
             .and_then(|e| e.to_str())
             .map(str::to_ascii_lowercase);
+        let tmp = crate::plot::partial_path(path);
         match ext.as_deref() {
-            Some("png") => ($draw)(BitMapBackend::new(path, $size).into_drawing_area()),
-            Some("svg") => ($draw)(SVGBackend::new(path, $size).into_drawing_area()),
+            Some("png") => ($draw)(BitMapBackend::new(&tmp, $size).into_drawing_area()),
+            Some("svg") => ($draw)(SVGBackend::new(&tmp, $size).into_drawing_area()),
             _ => Err(EvalError::Plot(
                 "the plot file must end in .png or .svg".into(),
             )),
         }
-        .map_err(|e| match e {
-            EvalError::Plot(m) => EvalError::Plot(format!("{}: {m}", path.display())),
-            other => other,
+        .and_then(|()| {
+            std::fs::rename(&tmp, path).map_err(|e| EvalError::Plot(format!("cannot write: {e}")))
+        })
+        .map_err(|e| {
+            let _ = std::fs::remove_file(&tmp);
+            match e {
+                EvalError::Plot(m) => EvalError::Plot(format!("{}: {m}", path.display())),
+                other => other,
+            }
         })
     }};
 }
 pub(crate) use draw_to_file;
+
+/// The temporary file [`draw_to_file!`] draws into: hidden, beside `path`, with the process id
+/// (two processes plotting to one file do not share it) and `path`'s extension (the PNG
+/// backend picks the format by it).
+pub(crate) fn partial_path(path: &Path) -> std::path::PathBuf {
+    let name = path
+        .file_stem()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    path.with_file_name(format!(".{name}.{}.partial.{ext}", std::process::id()))
+}
 
 /// A chart of `x` × `y` on `area` with its axes drawn and labelled (and a caption when
 /// given): the frame every plot of this module starts from.
@@ -410,5 +435,27 @@ mod tests {
             plot_accuracy_curves(&dir.path().join("x.gif"), &results, Curve::Rotation, 30.0)
                 .is_err()
         );
+    }
+
+    #[test]
+    fn a_plot_is_renamed_into_place_and_a_failed_one_leaves_no_partial_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let results = [result("ours-ot", 0.2)];
+        let svg = dir.path().join("rot.svg");
+        std::fs::write(&svg, "earlier").unwrap();
+        plot_accuracy_curves(&svg, &results, Curve::Rotation, 30.0).unwrap();
+        assert!(std::fs::read_to_string(&svg).unwrap().contains("ours-ot"));
+        // A folder where the plot should go: drawing succeeds, the rename fails.
+        let taken = dir.path().join("taken.png");
+        std::fs::create_dir(&taken).unwrap();
+        let err = plot_accuracy_curves(&taken, &results, Curve::Rotation, 30.0).unwrap_err();
+        assert!(err.to_string().contains("taken.png"), "{err}");
+        assert!(taken.is_dir());
+        let mut names: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        assert_eq!(names, ["rot.svg", "taken.png"]);
     }
 }

@@ -638,25 +638,6 @@ fn datasets(dir: &Path, split: &str) -> Result<Vec<(String, PathBuf)>> {
     Ok(subsets)
 }
 
-/// Writes `path` through a temporary file in the same folder (plotters writes directly).
-fn plot_atomic(path: &Path, results: &[MethodResult], curve: Curve, max: f64) -> Result<()> {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = path.with_file_name(format!(".tmp-{}-{name}", std::process::id()));
-    let r = ic_eval::plot_accuracy_curves(&tmp, results, curve, max)
-        .map_err(CliError::from)
-        .and_then(|_| {
-            std::fs::rename(&tmp, path)
-                .map_err(|e| CliError::input(format!("{}: cannot write: {e}", path.display())))
-        });
-    if r.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    r
-}
-
 fn write_text(path: &Path, text: &str) -> Result<()> {
     ic_geometry::io::write_atomic_with(
         path,
@@ -942,13 +923,13 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
             write_lines(&sub_out.join("candidates.jsonl"), &candidates)?;
         }
         for ext in ["png", "svg"] {
-            plot_atomic(
+            ic_eval::plot_accuracy_curves(
                 &sub_out.join(format!("rotation.{ext}")),
                 &results,
                 Curve::Rotation,
                 30.0,
             )?;
-            plot_atomic(
+            ic_eval::plot_accuracy_curves(
                 &sub_out.join(format!("translation.{ext}")),
                 &results,
                 Curve::TranslationSq,

@@ -1022,9 +1022,7 @@ pub fn write(report: &Report, out: &Path) -> Result<Vec<PathBuf>> {
             );
             for ext in ["svg", "png"] {
                 let path = plot_dir.join(format!("{}-{name}.{ext}", set.set.name()));
-                let tmp = plot_dir.join(format!(".{}-{name}.partial.{ext}", set.set.name()));
-                plot_accuracy_curves_titled(&tmp, &results, curve, max, Some(&title))?;
-                std::fs::rename(&tmp, &path)?;
+                plot_accuracy_curves_titled(&path, &results, curve, max, Some(&title))?;
                 files.push(path);
             }
         }
@@ -1035,9 +1033,7 @@ pub fn write(report: &Report, out: &Path) -> Result<Vec<PathBuf>> {
         let fgr = report.open3d_median("o3d-fgr", CURVE_REFERENCE);
         for ext in ["svg", "png"] {
             let path = plot_dir.join(format!("speed-accuracy.{ext}"));
-            let tmp = plot_dir.join(format!(".speed-accuracy.partial.{ext}"));
-            plot_curve(&tmp, curve, fgr)?;
-            std::fs::rename(&tmp, &path)?;
+            plot_curve(&path, curve, fgr)?;
             written.push(path);
         }
     }
