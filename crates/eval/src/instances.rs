@@ -21,6 +21,15 @@ pub struct InstanceMatch {
     /// and that prediction's index.
     pub best_iou: Vec<f64>,
     pub best_prediction: Vec<Option<usize>>,
+    /// For each true instance, the largest share of its pixels that one predicted instance
+    /// holds (low: cut in pieces or missed).
+    pub best_cover: Vec<f64>,
+    /// For each true instance, the share of its pixels that any predicted instance holds
+    /// (low: not seen as an object at all).
+    pub covered: Vec<f64>,
+    /// For each true instance, the share of the largest holder's pixels that are its own (low:
+    /// merged with its neighbours).
+    pub holder_precision: Vec<f64>,
     pub over_segmented: usize,
     pub under_segmented: usize,
     pub predictions: usize,
@@ -70,9 +79,24 @@ pub fn match_instances(predicted: &[&Mask], truth: &[&Mask]) -> Result<InstanceM
         predictions: predicted.len(),
         ..InstanceMatch::default()
     };
+    let share = |a: usize, b: usize| if b > 0 { a as f64 / b as f64 } else { 0.0 };
+    let mut any = vec![false; truth.first().map_or(0, |m| m.data.len())];
+    for p in predicted {
+        any.iter_mut().zip(&p.data).for_each(|(a, &b)| *a |= b);
+    }
+    let in_any: Vec<usize> = truth
+        .iter()
+        .map(|m| m.data.iter().zip(&any).filter(|(a, b)| **a && **b).count())
+        .collect();
     for (t, row) in overlap.iter().enumerate() {
         let mut best = (0.0, None);
         let mut holders = 0;
+        let holder = (0..row.len()).max_by_key(|&p| (row[p], std::cmp::Reverse(p)));
+        let held = holder.map_or(0, |p| row[p]);
+        out.best_cover.push(share(held, true_px[t]));
+        out.covered.push(share(in_any[t], true_px[t]));
+        out.holder_precision
+            .push(holder.map_or(0.0, |p| share(row[p], pred_px[p])));
         for (p, &o) in row.iter().enumerate() {
             let union = true_px[t] + pred_px[p] - o;
             let iou = if union > 0 {
@@ -174,12 +198,17 @@ mod tests {
         let m = match_instances(&[&merged], &[&a, &b]).unwrap();
         assert_eq!((m.under_segmented, m.over_segmented), (1, 0));
         assert_eq!(m.best_iou, vec![0.5, 0.5]);
+        assert_eq!(m.best_cover, vec![1.0, 1.0]);
+        assert_eq!(m.holder_precision, vec![0.5, 0.5]);
         let cut = ["ppqbbb", "ppqbbb"];
         let (p, q, r) = (mask(&cut, 'p'), mask(&cut, 'q'), mask(&cut, 'b'));
         let m = match_instances(&[&p, &q, &r], &[&a, &b]).unwrap();
         assert_eq!((m.under_segmented, m.over_segmented), (0, 1));
         assert_eq!(m.best_prediction, vec![Some(0), Some(2)]);
         assert_eq!(m.found(), 2);
+        assert_eq!(m.best_cover, vec![2.0 / 3.0, 1.0]);
+        assert_eq!(m.covered, vec![1.0, 1.0]);
+        assert_eq!(m.holder_precision, vec![1.0, 1.0]);
         let s = summarise(&[m]);
         assert_eq!((s.images, s.true_instances, s.recall), (1, 2, 1.0));
         assert_eq!(s.target_found_rate, 1.0);
