@@ -60,7 +60,11 @@ fn train_step(c: &mut Criterion) {
     group.sample_size(10);
     let cfg = SegConfig::cpu();
     let (depth, mask) = scene(cfg.train.render_width, cfg.train.render_height);
-    let ex = SegExample::new(&depth, &mask, &cfg).expect("example");
+    let (w, h) = (cfg.train.render_width, cfg.train.render_height);
+    let k = Intrinsics::new(525.0, 525.0, 319.5, 239.5, 640, 480)
+        .expect("camera")
+        .resized(w, h);
+    let ex = SegExample::new(&depth, &k, &mask, &cfg).expect("example");
     let batch = vec![ex; cfg.train.batch_size];
     let mut trainer = SegTrainer::new(cfg, 1).expect("network");
     group.bench_function("cpu_batch", |b| {

@@ -451,6 +451,7 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
         learning_rate: Some(c.learning_rate),
         lr_decay_to: c.lr_decay_to,
         lr_floor: c.lr_floor,
+        input: None,
     };
     let outcome =
         ic_train::seg::train_objects(&args, start.path(), corpus.clone(), corpus, control(c))

@@ -32,7 +32,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             mask.data[(v * w + u) as usize] = true;
         }
     }
-    let ex = SegExample::new(&depth, &mask, &cfg)?;
+    let k = ic_geometry::Intrinsics::new(
+        w as f64 * 0.82,
+        w as f64 * 0.82,
+        (w as f64 - 1.0) / 2.0,
+        (h as f64 - 1.0) / 2.0,
+        w,
+        h,
+    )?;
+    let ex = SegExample::new(&depth, &k, &mask, &cfg)?;
     let batch = vec![ex; cfg.train.batch_size];
     let mut t = SegTrainer::new(cfg.clone(), 1)?;
     t.step(&batch)?;

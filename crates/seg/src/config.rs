@@ -21,6 +21,47 @@ pub struct UNetConfig {
     /// own outline), whose connected components separate touching instances.
     #[serde(default = "one")]
     pub outputs: usize,
+    /// What the network sees of the depth map ([`crate::input`]); checkpoints written before
+    /// the choice existed read as [`SegInput::Depth`].
+    #[serde(default)]
+    pub input: SegInput,
+}
+
+/// The network's input channels.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SegInput {
+    /// The depth divided by its median, minus one, and a validity flag (2 channels).
+    #[default]
+    Depth,
+    /// Those two and the unit surface normal of each pixel (camera frame: x right, y down,
+    /// z forward; turned towards the camera), 5 channels: local orientation, so that the
+    /// crease where two objects touch, or where an object meets the table, is explicit.
+    DepthNormals,
+}
+
+impl SegInput {
+    /// Input channels of the network.
+    pub fn channels(self) -> usize {
+        match self {
+            SegInput::Depth => 2,
+            SegInput::DepthNormals => 5,
+        }
+    }
+}
+
+impl std::str::FromStr for SegInput {
+    type Err = SegError;
+
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "depth" => Ok(SegInput::Depth),
+            "depth-normals" | "depth_normals" => Ok(SegInput::DepthNormals),
+            other => Err(SegError::Config(format!(
+                "unknown input {other:?}: expected depth or depth-normals"
+            ))),
+        }
+    }
 }
 
 fn one() -> usize {
@@ -190,6 +231,7 @@ impl SegConfig {
                 channels: vec![8, 16, 32, 128],
                 bn_momentum: 0.1,
                 outputs: 1,
+                input: SegInput::Depth,
             },
             post: PostConfig::default(),
             train: SegTrainConfig {
@@ -218,6 +260,7 @@ impl SegConfig {
                 channels: vec![8, 16, 32, 128],
                 bn_momentum: 0.1,
                 outputs: 2,
+                input: SegInput::Depth,
             },
             post: PostConfig {
                 pixel_threshold: 0.5,
@@ -246,6 +289,7 @@ impl SegConfig {
                 channels: vec![4, 8],
                 bn_momentum: 0.1,
                 outputs: 1,
+                input: SegInput::Depth,
             },
             post: PostConfig {
                 min_pixels: 4,

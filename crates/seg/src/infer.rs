@@ -248,17 +248,18 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     use super::*;
-    use crate::config::UNetConfig;
+    use crate::config::{SegInput, UNetConfig};
 
     /// A U-Net with every weight, bias and running statistic drawn at random (variances
     /// positive), so that folding the batch norms is exercised in full.
-    fn random_unet(channels: Vec<usize>, outputs: usize, seed: u64) -> UNet {
+    fn random_unet(channels: Vec<usize>, outputs: usize, input: SegInput, seed: u64) -> UNet {
         let cfg = UNetConfig {
             input_width: 40,
             input_height: 24,
             channels,
             bn_momentum: 0.1,
             outputs,
+            input,
         };
         let map = VarMap::new();
         let net = UNet::new(
@@ -287,17 +288,19 @@ mod tests {
 
     #[test]
     fn folded_inference_matches_the_tensor_forward() {
-        for (channels, outputs, (h, w)) in [
-            (vec![8, 16, 32, 64], 2, (24usize, 40usize)),
-            (vec![4, 8], 1, (10, 6)),
-            (vec![3], 2, (5, 7)),
+        for (channels, outputs, kind, (h, w)) in [
+            (vec![8, 16, 32, 64], 2, SegInput::Depth, (24usize, 40usize)),
+            (vec![8, 16, 32, 64], 2, SegInput::DepthNormals, (24, 40)),
+            (vec![4, 8], 1, SegInput::Depth, (10, 6)),
+            (vec![3], 2, SegInput::DepthNormals, (5, 7)),
         ] {
-            let net = random_unet(channels.clone(), outputs, 7);
+            let net = random_unet(channels.clone(), outputs, kind, 7);
+            let c = kind.channels();
             let mut rng = ChaCha8Rng::seed_from_u64(11);
-            let input: Vec<f32> = (0..2 * h * w)
+            let input: Vec<f32> = (0..c * h * w)
                 .map(|_| rng.random_range(-1.0..1.0))
                 .collect();
-            let x = Tensor::from_vec(input.clone(), (1, 2, h, w), &Device::Cpu).unwrap();
+            let x = Tensor::from_vec(input.clone(), (1, c, h, w), &Device::Cpu).unwrap();
             let want = net
                 .forward_t(&x, false)
                 .unwrap()
@@ -325,7 +328,7 @@ mod tests {
     #[test]
     fn strips_of_one_row_give_the_whole_image_convolution() {
         // A wide layer forces one row per strip; the result must not depend on the split.
-        let net = random_unet(vec![8], 1, 3);
+        let net = random_unet(vec![8], 1, SegInput::Depth, 3);
         let folded = FoldedUNet::new(&net).unwrap();
         let conv = &folded.down[0].1;
         let (h, w) = (9usize, 8192usize);
@@ -362,7 +365,7 @@ mod tests {
 
     #[test]
     fn an_input_not_divisible_by_the_levels_is_an_error_not_a_panic() {
-        let net = random_unet(vec![4, 8, 16], 1, 1);
+        let net = random_unet(vec![4, 8, 16], 1, SegInput::Depth, 1);
         let folded = FoldedUNet::new(&net).unwrap();
         assert!(folded.forward(&vec![0.0; 2 * 10 * 6], 10, 6).is_err());
         assert!(folded.forward(&[0.0; 5], 8, 8).is_err());

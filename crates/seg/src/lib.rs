@@ -1,7 +1,7 @@
 //! `ic_seg` — finds the object in the depth map, the paper's first module.
 //!
-//! - [`unet::UNet`]: a compact U-Net on normalised depth (two input channels, see
-//!   [`input`]) giving one object logit per pixel; it stands in for the paper's YOLACT, which
+//! - [`unet::UNet`]: a compact U-Net on normalised depth (two input channels, or five with
+//!   surface normals, see [`input`]) giving one object logit per pixel; it stands in for the paper's YOLACT, which
 //!   needs ImageNet weights that cannot be fetched here (`docs/ARCHITECTURE.md` says how the
 //!   two differ).
 //! - [`infer::FoldedUNet`]: the same network for inference on the CPU, batch norms folded
@@ -25,13 +25,13 @@
 //! let mut depth = DepthImage::filled(64, 48, 3.0);
 //! let mut mask = Mask::filled(64, 48, false);
 //! for v in 16..32 { for u in 24..40 { depth.data[v * 64 + u] = 2.0; mask.data[v * 64 + u] = true; } }
-//! let example = SegExample::new(&depth, &mask, &cfg)?;
+//! let k = Intrinsics::new(60.0, 60.0, 31.5, 23.5, 64, 48)?;
+//! let example = SegExample::new(&depth, &k, &mask, &cfg)?;
 //! assert_eq!(example.target.len(), (cfg.net.input_width * cfg.net.input_height) as usize);
 //! let varmap = candle_nn::VarMap::new();
 //! let device = candle_core::Device::Cpu;
 //! let net = UNet::new(ic_nn::seeded_var_builder(&varmap, 7, &device), &cfg.net)?;
 //! let segmenter = Segmenter::from_parts(net, cfg);
-//! let k = Intrinsics::new(60.0, 60.0, 31.5, 23.5, 64, 48)?;
 //! // Untrained, the object may or may not be found; either answer is typed.
 //! match segmenter.segment(&depth, &k) {
 //!     Ok(seg) => assert_eq!(seg.mask.width, 64),
@@ -56,7 +56,7 @@ pub mod segmenter;
 pub mod train;
 pub mod unet;
 
-pub use config::{PostConfig, SegConfig, SegTrainConfig, UNetConfig};
+pub use config::{PostConfig, SegConfig, SegInput, SegTrainConfig, UNetConfig};
 pub use error::{Result, SegError};
 pub use geometric::{GeometricConfig, GeometricSegmentation, segment_geometric};
 pub use segmenter::{Segmentation, Segmenter};

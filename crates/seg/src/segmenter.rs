@@ -10,7 +10,7 @@ use ic_geometry::{DepthImage, Image, Intrinsics, Mask};
 
 use crate::config::SegConfig;
 use crate::infer::FoldedUNet;
-use crate::input::{INPUT_CHANNELS, prepare, upsample_bilinear};
+use crate::input::{prepare_input, upsample_bilinear};
 use crate::post::{Instance, best_instance, erode3x3, instances, masked_points, split_instances};
 use crate::unet::UNet;
 use crate::{Result, SegError, checkpoint};
@@ -82,19 +82,25 @@ impl Segmenter {
         &mut self.config
     }
 
-    /// Per-pixel probabilities of `depths` at the network's resolution, `[B][outputs·H·W]`
-    /// (the object map, then the core map of a two-output network).
-    pub fn probabilities_small(&self, depths: &[&DepthImage]) -> Result<Vec<Vec<f32>>> {
+    /// Per-pixel probabilities of `images` (each a depth map and its camera) at the network's
+    /// resolution, `[B][outputs·H·W]` (the object map, then the core map of a two-output
+    /// network).
+    pub fn probabilities_small(
+        &self,
+        images: &[(&DepthImage, &Intrinsics)],
+    ) -> Result<Vec<Vec<f32>>> {
         let (w, h) = (self.config.net.input_width, self.config.net.input_height);
+        let kind = self.config.net.input;
+        let prepare = |(d, k): &(&DepthImage, &Intrinsics)| prepare_input(d, k, kind, w, h);
         if self.device.is_cpu() {
             // The folded network (batch norm in the convolutions, no tensor ops): the same
             // function, several times faster on the CPU. Folded per call, so a segmenter
             // sharing a network in training sees its current weights.
             let folded = FoldedUNet::new(&self.net)?;
-            return depths
+            return images
                 .iter()
-                .map(|d| {
-                    let mut logits = folded.forward(&prepare(d, w, h)?, h as usize, w as usize)?;
+                .map(|image| {
+                    let mut logits = folded.forward(&prepare(image)?, h as usize, w as usize)?;
                     logits
                         .iter_mut()
                         .for_each(|v| *v = 1.0 / (1.0 + (-*v).exp()));
@@ -102,13 +108,13 @@ impl Segmenter {
                 })
                 .collect();
         }
-        let mut input = Vec::with_capacity(depths.len() * INPUT_CHANNELS * (w * h) as usize);
-        for d in depths {
-            input.extend(prepare(d, w, h)?);
+        let mut input = Vec::with_capacity(images.len() * kind.channels() * (w * h) as usize);
+        for image in images {
+            input.extend(prepare(image)?);
         }
         let x = Tensor::from_vec(
             input,
-            (depths.len(), INPUT_CHANNELS, h as usize, w as usize),
+            (images.len(), kind.channels(), h as usize, w as usize),
             &self.device,
         )?;
         let p = candle_nn::ops::sigmoid(&self.net.forward_t(&x, false)?.detach())?;
@@ -144,7 +150,7 @@ impl Segmenter {
         intrinsics.validate()?;
         depth.check_size(intrinsics.width, intrinsics.height)?;
         let t0 = Instant::now();
-        let small = self.probabilities_small(&[depth])?.remove(0);
+        let small = self.probabilities_small(&[(depth, intrinsics)])?.remove(0);
         let network_seconds = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
         let prob = self.full_resolution(&small, 0, depth);
@@ -180,7 +186,7 @@ impl Segmenter {
     pub fn instances(&self, depth: &DepthImage, intrinsics: &Intrinsics) -> Result<Vec<Instance>> {
         intrinsics.validate()?;
         depth.check_size(intrinsics.width, intrinsics.height)?;
-        let small = self.probabilities_small(&[depth])?.remove(0);
+        let small = self.probabilities_small(&[(depth, intrinsics)])?.remove(0);
         let object = self.full_resolution(&small, 0, depth);
         let post = &self.config.post;
         let min_pixels = post.min_pixels_at(depth.width, depth.height);

@@ -8,41 +8,48 @@
 //! rounding error of the cross-entropy.
 
 use candle_core::Tensor;
-use ic_geometry::{DepthImage, Image, Mask};
+use ic_geometry::{DepthImage, Image, Intrinsics, Mask};
 
 use crate::config::SegConfig;
-use crate::input::{prepare, resize_nearest};
+use crate::input::{prepare_input, resize_nearest};
 use crate::{Result, SegError};
 
 /// One training example at the network's resolution.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SegExample {
-    /// `[2, H, W]` flattened (see [`crate::input::prepare`]).
+    /// `[C, H, W]` flattened, C the configuration's input channels (see
+    /// [`crate::input::prepare_input`]).
     pub input: Vec<f32>,
     /// `[outputs, H, W]`: 1 on the object (then on the instance cores), 0 elsewhere.
     pub target: Vec<f32>,
 }
 
 impl SegExample {
-    /// Resizes `depth` and `mask` (the same size) to the network input of `config`: the
-    /// object is the one instance ([`SegExample::from_instances`]).
-    pub fn new(depth: &DepthImage, mask: &Mask, config: &SegConfig) -> Result<SegExample> {
+    /// Resizes `depth` and `mask` (the same size, seen by `intrinsics`) to the network input
+    /// of `config`: the object is the one instance ([`SegExample::from_instances`]).
+    pub fn new(
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+        mask: &Mask,
+        config: &SegConfig,
+    ) -> Result<SegExample> {
         let ids = Image {
             width: mask.width,
             height: mask.height,
             data: mask.data.iter().map(|&m| m as u32).collect(),
         };
-        Self::from_instances(depth, &ids, |_| true, config)
+        Self::from_instances(depth, intrinsics, &ids, |_| true, config)
     }
 
-    /// An example of a scene with many objects: `instances` (the depth map's size) says which
-    /// instance each pixel shows and `is_object` which ids are objects (not the support or
+    /// An example of a scene with many objects, seen by `intrinsics`: `instances` (the depth
+    /// map's size) says which instance each pixel shows and `is_object` which ids are objects (not the support or
     /// the background). Targets at the network's resolution: every object pixel, then — for
     /// two-output networks — the instance cores (object pixels whose neighbours within
     /// `train.core_radius` pixels all show the same instance; outside the image counts as
     /// the same).
     pub fn from_instances(
         depth: &DepthImage,
+        intrinsics: &Intrinsics,
         instances: &Image<u32>,
         is_object: impl Fn(u32) -> bool,
         config: &SegConfig,
@@ -90,7 +97,7 @@ impl SegExample {
             }
         }
         Ok(SegExample {
-            input: prepare(depth, w, h)?,
+            input: prepare_input(depth, intrinsics, config.net.input, w, h)?,
             target,
         })
     }

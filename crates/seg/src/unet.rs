@@ -12,7 +12,6 @@ use candle_nn::{Init, VarBuilder};
 use ic_nn::norm::BatchNorm2;
 
 use crate::config::UNetConfig;
-use crate::input::INPUT_CHANNELS;
 
 /// A 2-D convolution with seeded Kaiming-uniform weights (`bound = √(6 / fan_in)`), stride 1.
 #[derive(Clone, Debug)]
@@ -143,7 +142,7 @@ impl DoubleConv {
     }
 }
 
-/// The U-Net. Input `[B, 2, H, W]` (see [`crate::input`]), output logits `[B, outputs, H, W]`
+/// The U-Net. Input `[B, C, H, W]` with C = `cfg.input.channels()` (see [`crate::input`]), output logits `[B, outputs, H, W]`
 /// (object, then instance core when `outputs` = 2).
 #[derive(Clone, Debug)]
 pub struct UNet {
@@ -158,7 +157,7 @@ impl UNet {
         let ch = &cfg.channels;
         let m = cfg.bn_momentum;
         let mut down = Vec::with_capacity(ch.len());
-        let mut cin = INPUT_CHANNELS;
+        let mut cin = cfg.input.channels();
         for (l, &c) in ch.iter().enumerate() {
             down.push(DoubleConv::new(vb.pp(format!("down{l}")), cin, c, m)?);
             cin = c;

@@ -10,6 +10,11 @@ use ic_seg::{SegConfig, SegError, SegExample, Segmenter, seg_loss};
 use ic_train::SegTrainer;
 
 /// A wall at depth 4 with a box at depth 3 whose position depends on `shift`.
+/// The camera of [`scene`]'s 64×48 depth maps.
+fn camera() -> Intrinsics {
+    Intrinsics::new(60.0, 60.0, 31.5, 23.5, 64, 48).unwrap()
+}
+
 fn scene(shift: u32) -> (DepthImage, Mask) {
     let (w, h) = (64u32, 48u32);
     let mut depth = DepthImage::filled(w, h, 4.0);
@@ -28,7 +33,7 @@ fn examples(cfg: &SegConfig) -> Vec<SegExample> {
     (0..2)
         .map(|s| {
             let (d, m) = scene(s * 4);
-            SegExample::new(&d, &m, cfg).unwrap()
+            SegExample::new(&d, &camera(), &m, cfg).unwrap()
         })
         .collect()
 }
@@ -133,8 +138,22 @@ fn every_parameter_receives_a_gradient() {
 
 #[test]
 fn tiny_network_overfits_a_fixed_batch() {
-    let cfg = SegConfig::tiny();
+    overfits(SegConfig::tiny());
+}
+
+#[test]
+fn tiny_network_with_normals_overfits_a_fixed_batch() {
+    let mut cfg = SegConfig::tiny();
+    cfg.net.input = ic_seg::SegInput::DepthNormals;
+    overfits(cfg);
+}
+
+fn overfits(cfg: SegConfig) {
     let ex = examples(&cfg);
+    assert_eq!(
+        ex[0].input.len(),
+        cfg.net.input.channels() * (cfg.net.input_width * cfg.net.input_height) as usize
+    );
     let mut trainer = SegTrainer::new(cfg, 11).unwrap();
     let first = trainer.loss(&ex).unwrap();
     let mut last = trainer.step(&ex).unwrap();
@@ -158,7 +177,9 @@ fn tiny_network_overfits_a_fixed_batch() {
 
 fn outputs(seg: &Segmenter) -> Vec<f32> {
     let (d, _) = scene(2);
-    seg.probabilities_small(&[&d]).unwrap().remove(0)
+    seg.probabilities_small(&[(&d, &camera())])
+        .unwrap()
+        .remove(0)
 }
 
 #[test]

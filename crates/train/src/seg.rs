@@ -24,10 +24,9 @@ use ic_data::{
 use ic_geometry::Mask;
 use ic_render::CpuRenderer;
 use ic_seg::checkpoint::{CONFIG_KEY, STATE_KEY};
-use ic_seg::input::INPUT_CHANNELS;
 use ic_seg::post::iou;
 use ic_seg::unet::UNet;
-use ic_seg::{GeometricConfig, SegConfig, SegError, SegExample, Segmenter, seg_loss};
+use ic_seg::{GeometricConfig, SegConfig, SegError, SegExample, SegInput, Segmenter, seg_loss};
 use indicatif::ProgressBar;
 
 use crate::{Network, Outcome, RunControl, StepRow, Task, Trainer, Validation};
@@ -80,26 +79,31 @@ pub struct SegStepStats {
 }
 
 impl Trainer<UNet> {
-    /// Starts a two-output network from a one-output checkpoint of the same channels (the
-    /// input size may differ: the network is fully convolutional): every weight is copied,
-    /// and the head's object output is copied into both outputs (the core map starts as the
-    /// object map). Errors name `path` and the tensor that does not fit.
-    pub fn load_widening_head(&mut self, path: &Path) -> Result<(), SegError> {
+    /// Starts this network from a checkpoint of the same channels that has fewer outputs
+    /// (one, where this one has two) or fewer inputs (depth alone, where this one also sees
+    /// surface normals), or both (the input size may differ: the network is fully
+    /// convolutional). Every weight is copied; the head's object output goes into both
+    /// outputs (the core map starts as the object map); the first convolution's weights of
+    /// the new input channels start at zero, so the widened network computes what the
+    /// checkpoint did until training teaches it to use them. Errors name `path` and the
+    /// tensor that does not fit.
+    pub fn load_widening(&mut self, path: &Path) -> Result<(), SegError> {
         let config = ic_seg::checkpoint::read_config(path)?;
         let bad = |message: String| SegError::Checkpoint {
             path: path.to_path_buf(),
             message,
         };
-        if config.net.channels != self.config.net.channels
-            || config.net.outputs != 1
-            || self.config.net.outputs != 2
+        let (from, to) = (&config.net, &self.config.net);
+        let widen_head = (from.outputs, to.outputs) == (1, 2);
+        let (cin_from, cin_to) = (from.input.channels(), to.input.channels());
+        if from.channels != to.channels
+            || !(widen_head || from.outputs == to.outputs)
+            || !(from.input == to.input
+                || (from.input, to.input) == (SegInput::Depth, SegInput::DepthNormals))
         {
             return Err(bad(format!(
-                "cannot widen a network of channels {:?} and {} output(s) into one of channels {:?} and {} outputs",
-                config.net.channels,
-                config.net.outputs,
-                self.config.net.channels,
-                self.config.net.outputs
+                "cannot widen a network of channels {:?}, {} output(s) and input {:?} into one of channels {:?}, {} output(s) and input {:?}",
+                from.channels, from.outputs, from.input, to.channels, to.outputs, to.input
             )));
         }
         let tensors =
@@ -113,8 +117,17 @@ impl Trainer<UNet> {
             let t = tensors
                 .get(name)
                 .ok_or_else(|| bad(format!("missing tensor {name}")))?;
-            let t = if name.starts_with("head.") {
+            let t = if widen_head && name.starts_with("head.") {
                 Tensor::cat(&[t, t], 0)?
+            } else if cin_to > cin_from
+                && t.rank() == 4
+                && t.dim(1)? == cin_from
+                && var.dims4().is_ok_and(|(_, c, _, _)| c == cin_to)
+                && name.starts_with("down0.")
+            {
+                let (o, _, kh, kw) = t.dims4()?;
+                let zeros = Tensor::zeros((o, cin_to - cin_from, kh, kw), t.dtype(), t.device())?;
+                Tensor::cat(&[t, &zeros], 1)?
             } else {
                 t.clone()
             };
@@ -141,20 +154,21 @@ impl Trainer<UNet> {
             self.config.net.input_height as usize,
         );
         let c = self.config.net.outputs;
+        let cin = self.config.net.input.channels();
         let b = examples.len();
-        let mut input = Vec::with_capacity(b * INPUT_CHANNELS * w * h);
+        let mut input = Vec::with_capacity(b * cin * w * h);
         let mut target = Vec::with_capacity(b * c * w * h);
         for e in examples {
-            if e.input.len() != INPUT_CHANNELS * w * h || e.target.len() != c * w * h {
+            if e.input.len() != cin * w * h || e.target.len() != c * w * h {
                 return Err(SegError::Input(format!(
-                    "example is not {INPUT_CHANNELS}×{h}×{w} with {c}×{h}×{w} targets"
+                    "example is not {cin}×{h}×{w} with {c}×{h}×{w} targets"
                 )));
             }
             input.extend_from_slice(&e.input);
             target.extend_from_slice(&e.target);
         }
         Ok((
-            Tensor::from_vec(input, (b, INPUT_CHANNELS, h, w), &self.device)?,
+            Tensor::from_vec(input, (b, cin, h, w), &self.device)?,
             Tensor::from_vec(target, (b, c, h, w), &self.device)?,
         ))
     }
@@ -226,6 +240,12 @@ pub struct TrainArgs {
     /// `--resume` finds a checkpoint.
     #[arg(long)]
     pub init: Option<PathBuf>,
+    /// The network's input: `depth` (depth and validity, 2 channels; the presets') or
+    /// `depth-normals` (also each pixel's surface normal, 5 channels). With `--init` from a
+    /// depth-only checkpoint, the new channels' weights start at zero. Default: the preset's,
+    /// or the `--init` checkpoint's.
+    #[arg(long)]
+    pub input: Option<String>,
     /// Output folder: latest.safetensors (resumable), best.safetensors (weights), CSV logs.
     #[arg(long)]
     pub out: PathBuf,
@@ -403,13 +423,16 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
     if args.resume {
         tracing::info!("--resume: no {} yet, starting fresh", latest.display());
     }
-    // A one-output init for a two-output preset: the preset's configuration, the init's
-    // weights with the head widened.
+    // A one-output init for a two-output preset, or a depth-only init for `--input
+    // depth-normals`: the preset's configuration (with the asked input), the init's weights
+    // widened.
+    let input: Option<SegInput> = args.input.as_deref().map(str::parse).transpose()?;
     let widen = match init {
         Some(p) => {
             let c =
                 ic_seg::checkpoint::read_config(p).with_context(|| format!("{}", p.display()))?;
-            c.net.outputs == 1 && SegConfig::preset(&args.preset)?.net.outputs == 2
+            (c.net.outputs == 1 && SegConfig::preset(&args.preset)?.net.outputs == 2)
+                || input.is_some_and(|i| i != c.net.input)
         }
         None => false,
     };
@@ -419,6 +442,9 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
         }
         _ => SegConfig::preset(&args.preset)?,
     };
+    if let Some(i) = input {
+        cfg.net.input = i;
+    }
     if let Some(v) = args.iterations {
         cfg.train.iterations = v;
     }
@@ -431,7 +457,7 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
     let mut t = SegTrainer::new(cfg, args.seed)?;
     if let Some(p) = init {
         if widen {
-            t.load_widening_head(p)?;
+            t.load_widening(p)?;
         } else {
             t.load_weights(p)
                 .with_context(|| format!("{}", p.display()))?;
@@ -531,12 +557,13 @@ impl Source {
     fn example(&self, index: u64, cfg: &SegConfig) -> Result<SegExample, ic_data::DataError> {
         let room = |g: &RoomSampleGenerator| -> Result<_, ic_data::DataError> {
             let v = g.view_with(&mut CpuRenderer::new(), index)?;
-            Ok(SegExample::new(&v.depth, &v.mask_visib, cfg))
+            Ok(SegExample::new(&v.depth, &v.intrinsics, &v.mask_visib, cfg))
         };
         let clutter = |g: &ClutterGenerator| -> Result<_, ic_data::DataError> {
             let s = g.scene(index)?;
             Ok(SegExample::from_instances(
                 &s.depth,
+                &s.intrinsics,
                 &s.instances,
                 |id| id < SUPPORT_ID_BASE,
                 cfg,

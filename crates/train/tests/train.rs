@@ -310,6 +310,7 @@ fn seg_args(out: &Path, iterations: u64, resume: bool) -> ic_train::seg::TrainAr
         learning_rate: None,
         lr_decay_to: None,
         lr_floor: 1e-5,
+        input: None,
     }
 }
 
@@ -465,6 +466,71 @@ fn a_one_output_checkpoint_starts_a_two_output_network_with_its_head_widened() {
         .err()
         .unwrap();
     assert!(format!("{err:#}").contains("final.safetensors"), "{err:#}");
+}
+
+#[test]
+fn a_depth_only_checkpoint_starts_a_network_with_normals_that_computes_the_same_until_trained() {
+    let dir = tempfile::tempdir().unwrap();
+    let room = dir.path().join("room");
+    seg_run(&room, 2, false);
+    let init = room.join("final.safetensors");
+    let args = ic_train::seg::TrainArgs {
+        input: Some("depth-normals".into()),
+        ..seg_args(&dir.path().join("normals"), 1, false)
+    };
+    let t = ic_train::seg::make_trainer(&args, &dir.path().join("none"), Some(&init)).unwrap();
+    assert_eq!(t.config().net.input, ic_seg::SegInput::DepthNormals);
+    // A box on a tilted floor: the normals differ from pixel to pixel, and their weights are 0.
+    let (w, h) = (64u32, 48u32);
+    let k = ic_geometry::Intrinsics::new(60.0, 60.0, 31.5, 23.5, w, h).unwrap();
+    let mut depth = ic_geometry::DepthImage::filled(w, h, 0.0);
+    for v in 0..h {
+        for u in 0..w {
+            let box_ = (20..40).contains(&u) && (10..30).contains(&v);
+            depth.data[(v * w + u) as usize] = if box_ { 2.0 } else { 3.0 + 0.02 * v as f32 };
+        }
+    }
+    let before = ic_seg::Segmenter::load(&init).unwrap();
+    let after = t.segmenter();
+    let p = |s: &ic_seg::Segmenter| s.probabilities_small(&[(&depth, &k)]).unwrap().remove(0);
+    let (a, b) = (p(&before), p(&after));
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(&b) {
+        assert!((x - y).abs() < 1e-6, "{x} vs {y}");
+    }
+    // The new input channels' weights are zeros, the old ones copied.
+    let saved = dir.path().join("normals.safetensors");
+    t.save_weights(&saved).unwrap();
+    let load = |p: &Path| candle_core::safetensors::load(p, &candle_core::Device::Cpu).unwrap();
+    let (old, new) = (load(&init), load(&saved));
+    let first = old
+        .keys()
+        .find(|n| n.starts_with("down0.") && old[*n].rank() == 4)
+        .unwrap();
+    assert_eq!(old[first].dim(1).unwrap(), 2);
+    assert_eq!(new[first].dim(1).unwrap(), 5);
+    let narrow = |t: &candle_core::Tensor, from: usize, len: usize| {
+        t.narrow(1, from, len)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap()
+    };
+    assert_eq!(narrow(&new[first], 0, 2), narrow(&old[first], 0, 2));
+    assert!(narrow(&new[first], 2, 3).iter().all(|&v| v == 0.0));
+    // A network with normals cannot go back to depth alone.
+    let back = ic_train::seg::TrainArgs {
+        input: Some("depth".into()),
+        ..seg_args(&dir.path().join("back"), 1, false)
+    };
+    let err = ic_train::seg::make_trainer(&back, &dir.path().join("none"), Some(&saved))
+        .err()
+        .unwrap();
+    assert!(
+        format!("{err:#}").contains("normals.safetensors"),
+        "{err:#}"
+    );
 }
 
 #[test]
