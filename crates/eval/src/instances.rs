@@ -140,6 +140,53 @@ pub struct InstanceSummary {
     pub over_segmented: usize,
     pub under_segmented: usize,
     pub predictions_per_image: f64,
+    /// How the images' targets that were not found were missed.
+    pub target_misses: TargetMisses,
+}
+
+/// The targets not found (best IoU < 0.5), by how they were missed.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct TargetMisses {
+    /// Under half of the target's pixels are in any predicted instance: not seen as an object
+    /// (e.g. a flat object on the table).
+    pub not_object: usize,
+    /// One instance holds at least half of the target but is mostly other objects.
+    pub merged: usize,
+    /// No instance holds half of the target, though instances cover it: cut in pieces.
+    pub split: usize,
+    /// An instance holds half of the target and is mostly the target, yet the IoU is under
+    /// 0.5 (a large holder that spills over, or a small target).
+    pub borderline: usize,
+}
+
+impl TargetMisses {
+    /// How `m`'s target (its first true instance) was missed: `not_object`, `merged`,
+    /// `split` or `borderline` (the fields' names), or `None` when it was found.
+    pub fn kind(m: &InstanceMatch) -> Option<&'static str> {
+        let first = |v: &[f64]| v.first().copied().unwrap_or(0.0);
+        if m.best_iou.is_empty() || first(&m.best_iou) >= 0.5 {
+            return None;
+        }
+        Some(if first(&m.covered) < 0.5 {
+            "not_object"
+        } else if first(&m.best_cover) < 0.5 {
+            "split"
+        } else if first(&m.holder_precision) < 0.5 {
+            "merged"
+        } else {
+            "borderline"
+        })
+    }
+
+    fn add(&mut self, m: &InstanceMatch) {
+        match Self::kind(m) {
+            Some("not_object") => self.not_object += 1,
+            Some("split") => self.split += 1,
+            Some("merged") => self.merged += 1,
+            Some(_) => self.borderline += 1,
+            None => {}
+        }
+    }
 }
 
 /// Sums per-image matches (each image's first true instance is its target).
@@ -169,6 +216,10 @@ pub fn summarise(matches: &[InstanceMatch]) -> InstanceSummary {
         under_segmented: matches.iter().map(|m| m.under_segmented).sum(),
         predictions_per_image: matches.iter().map(|m| m.predictions).sum::<usize>() as f64
             / n.max(1) as f64,
+        target_misses: matches.iter().fold(TargetMisses::default(), |mut t, m| {
+            t.add(m);
+            t
+        }),
     }
 }
 
@@ -212,6 +263,37 @@ mod tests {
         let s = summarise(&[m]);
         assert_eq!((s.images, s.true_instances, s.recall), (1, 2, 1.0));
         assert_eq!(s.target_found_rate, 1.0);
+        assert_eq!(s.target_misses, TargetMisses::default());
         assert!(match_instances(&[&mask(&["x"], 'x')], &[&a]).is_err());
+    }
+
+    #[test]
+    fn a_missed_target_is_counted_as_not_an_object_merged_split_or_borderline() {
+        // One row of pixels; the target is the first true instance.
+        let one = |row: &str, c: char| mask(&[row], c);
+        let target = one("tttttt....", 't');
+        let other = one("......oooo", 'o');
+        let summary = |pred: &[&str]| {
+            let masks: Vec<Mask> = pred.iter().map(|r| one(r, 'x')).collect();
+            let refs: Vec<&Mask> = masks.iter().collect();
+            summarise(&[match_instances(&refs, &[&target, &other]).unwrap()]).target_misses
+        };
+        let only = |f: fn(&mut TargetMisses) -> &mut usize| {
+            let mut t = TargetMisses::default();
+            *f(&mut t) = 1;
+            t
+        };
+        assert_eq!(summary(&["xx........"]), only(|t| &mut t.not_object));
+        assert_eq!(summary(&[]), only(|t| &mut t.not_object));
+        // One instance over the target and the other object, and more: IoU 0.6 is found;
+        // with half the target only, merged.
+        assert_eq!(summary(&["xxxxxxxxxx"]), TargetMisses::default());
+        assert_eq!(summary(&["...xxxxxxx"]), only(|t| &mut t.merged));
+        assert_eq!(
+            summary(&["xx........", "..xx......", "....xx...."]),
+            only(|t| &mut t.split)
+        );
+        // Half the target and as much again of the other: cover and precision 0.5, IoU 1/3.
+        assert_eq!(summary(&["...xxxxxx."]), only(|t| &mut t.borderline));
     }
 }

@@ -963,7 +963,7 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     let mut rows = String::from(
         "scene,support,objects,target_copies,target_object,target_size_m,target_depth_m,\
          target_visible_px,target_best_iou,target_best_cover,target_covered,\
-         target_holder_precision,predictions\n",
+         target_holder_precision,target_miss,predictions\n",
     );
     for (i, s) in scenes.enumerate() {
         let s = s?;
@@ -972,7 +972,7 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
         seconds.push(t.elapsed().as_secs_f64());
         let target = &s.objects[0];
         rows.push_str(&format!(
-            "{},{},{},{},{},{:.3},{:.3},{},{:.4},{:.4},{:.4},{:.4},{}\n",
+            "{},{},{},{},{},{:.3},{:.3},{},{:.4},{:.4},{:.4},{:.4},{},{}\n",
             s.index,
             s.support.as_str(),
             s.objects.len(),
@@ -985,6 +985,7 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
             m.best_cover.first().copied().unwrap_or(0.0),
             m.covered.first().copied().unwrap_or(0.0),
             m.holder_precision.first().copied().unwrap_or(0.0),
+            ic_eval::instances::TargetMisses::kind(&m).unwrap_or(""),
             m.predictions,
         ));
         matches.push(m);

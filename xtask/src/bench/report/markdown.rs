@@ -206,6 +206,17 @@ fn clutter_section(report: &Report) -> String {
                 v["under_segmented"],
                 f("predictions_per_image"),
             );
+            let m = &v["target_misses"];
+            if m.is_object() {
+                let _ = writeln!(
+                    s,
+                    "Targets missed: {} not seen as an object (under half of the target in any \
+                     instance), {} merged with other objects, {} cut in pieces, {} borderline \
+                     (`eval-seg` writes a row per scene, `docs/decisions.md` says which \
+                     targets).\n",
+                    m["not_object"], m["merged"], m["split"], m["borderline"],
+                );
+            }
         }
         Err(why) => {
             let _ = writeln!(s, "Segmentation: not measured ({why}).\n");
@@ -1245,6 +1256,7 @@ mod tests {
             segmentation: Ok(serde_json::json!({
                 "images": 2, "true_instances": 9, "target_found_rate": 0.5, "recall": 0.75,
                 "matched_iou_mean": 0.8, "over_segmented": 1, "under_segmented": 2,
+                "target_misses": {"not_object": 1, "merged": 0, "split": 0, "borderline": 0},
                 "predictions_per_image": 5.0,
             })),
             pipeline: Err("`incontext eval --cases` is not available".into()),
@@ -1279,6 +1291,10 @@ mod tests {
         assert!(md.contains("## Clutter (2 scenes)"), "{md}");
         assert!(
             md.contains("| 2 | 9 | 0.500 | 0.750 | 0.800 | 1 | 2 | 5.0 |"),
+            "{md}"
+        );
+        assert!(
+            md.contains("Targets missed: 1 not seen as an object (under half"),
             "{md}"
         );
         assert!(md.contains("The pipeline: not run (`incontext eval --cases` is not available)."));
