@@ -370,6 +370,7 @@ fn train_pose(a: &PoseTrainArgs, seed: u64) -> Result<Value> {
         head: a.head.clone(),
         objects: c.objects.display().to_string(),
         protocol: protocol.as_str().into(),
+        paper_fraction: 0.0,
         init: start.path().map(Path::to_path_buf),
         out: c.out.clone(),
         iterations: Some(c.iterations),

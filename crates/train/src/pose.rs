@@ -193,6 +193,12 @@ pub struct TrainArgs {
     /// 10–100 % image span, truncation, scale augmentation, occluders, sensor model).
     #[arg(long, default_value = "paper")]
     pub protocol: String,
+    /// With `--protocol deployment`: this share of the training samples (a seeded draw per
+    /// sample) follows the paper's protocol instead — its quarter of viewpoints at one
+    /// distance, no sensor model, the objects and loss of the run — so that a run for
+    /// deployment keeps what the paper protocol measures. Validation stays deployment. 0: none.
+    #[arg(long, default_value_t = 0.0)]
+    pub paper_fraction: f64,
     /// Start from these weights (e.g. models/pose-cpu-ot.safetensors) and their configuration
     /// (the preset's overrides still apply; the network must keep its shape). Fresh Adam
     /// moments, iteration 0. Ignored when `--resume` finds a checkpoint.
@@ -418,7 +424,20 @@ pub fn train_corpora(
     );
 
     let scfg = sample_config(&cfg, protocol);
-    let data = serde_json::json!({
+    let paper_fraction = args.paper_fraction;
+    if !(0.0..=1.0).contains(&paper_fraction) {
+        bail!("--paper-fraction {paper_fraction}: must be in [0, 1]");
+    }
+    if paper_fraction > 0.0 && protocol != SamplingProtocol::Deployment {
+        bail!(
+            "--paper-fraction needs --protocol deployment (the paper's samples are mixed into it)"
+        );
+    }
+    let paper_cfg = ObjectSampleConfig {
+        symmetry_aware: scfg.symmetry_aware,
+        ..sample_config(&cfg, SamplingProtocol::Paper)
+    };
+    let mut data = serde_json::json!({
         "protocol": protocol.as_str(),
         "objects": objects.describe(),
         "init": args.init,
@@ -426,6 +445,11 @@ pub fn train_corpora(
         "validation_seed": VALIDATION_SEED,
         "precise_bn_batches": args.precise_bn,
     });
+    if paper_fraction > 0.0 {
+        // Only when used, so that the records of earlier runs still match.
+        data["paper_fraction"] = serde_json::json!(paper_fraction);
+        data["paper_sample"] = serde_json::to_value(&paper_cfg)?;
+    }
     tracing::info!("data {}", serde_json::to_string(&data)?);
     check_data_record(&args.out.join("data.json"), &data, resuming)?;
     // The objects' symmetries found by earlier parts of the run (the search takes ≈ 0.3 s per
@@ -446,6 +470,19 @@ pub fn train_corpora(
         scfg.clone(),
         seed,
     )?);
+    let paper_generator = if paper_fraction > 0.0 {
+        tracing::info!(
+            "paper-protocol samples: {:.0} % of training",
+            100.0 * paper_fraction
+        );
+        Some(Arc::new(ObjectSampleGenerator::new(
+            train_corpus.clone(),
+            paper_cfg,
+            seed,
+        )?))
+    } else {
+        None
+    };
     let val_gen = ObjectSampleGenerator::new(val_corpus.clone(), scfg.clone(), VALIDATION_SEED)?;
     let val_set: Vec<ObjectSample> = (0..cfg.train.validation_count as u64)
         .map(|i| val_gen.sample(i))
@@ -473,12 +510,22 @@ pub fn train_corpora(
                 Some(count * b as u64),
                 workers,
                 2 * b,
-                move |i| generator.sample(i),
+                move |i| match &paper_generator {
+                    Some(p) if is_paper_sample(seed, i, paper_fraction) => p.sample(i),
+                    _ => generator.sample(i),
+                },
             )
             .batches(b)
             .map(|r| r.map_err(anyhow::Error::from))
         },
     )
+}
+
+/// Whether training sample `index` of a run with `--paper-fraction` follows the paper's
+/// protocol: a uniform draw from (`seed`, `index`) below `fraction`.
+pub fn is_paper_sample(seed: u64, index: u64, fraction: f64) -> bool {
+    let h = ic_data::mix_seed(seed ^ 0x7061_7065_725f_6d69, index);
+    ((h >> 11) as f64 / (1u64 << 53) as f64) < fraction
 }
 
 /// The pose network's side of [`crate::run`].

@@ -17,6 +17,7 @@ fn pose_args(out: &Path, iterations: u64, resume: bool) -> ic_train::pose::Train
         head: None,
         objects: "procedural@3:1".into(),
         protocol: "paper".into(),
+        paper_fraction: 0.0,
         init: None,
         out: out.to_path_buf(),
         iterations: Some(iterations),
@@ -105,6 +106,59 @@ fn assert_same_checkpoint(a: &Path, b: &Path) {
         b.display()
     );
     assert_eq!(meta(a), meta(b), "{} vs {}", a.display(), b.display());
+}
+
+#[test]
+fn a_paper_fraction_mixes_the_papers_samples_into_a_deployment_run() {
+    // The draw: the share asked for, seeded, none at 0 and all at 1.
+    let share = |f: f64| {
+        (0..4000)
+            .filter(|&i| ic_train::pose::is_paper_sample(5, i, f))
+            .count()
+    };
+    assert!((900..1100).contains(&share(0.25)), "{}", share(0.25));
+    assert_eq!((share(0.0), share(1.0)), (0, 4000));
+    assert_eq!(share(0.25), share(0.25));
+    let dir = tempfile::tempdir().unwrap();
+    let run = |name: &str, fraction: f64| {
+        let out = dir.path().join(name);
+        let args = ic_train::pose::TrainArgs {
+            protocol: "deployment".into(),
+            paper_fraction: fraction,
+            ..pose_args(&out, 1, false)
+        };
+        ic_train::pose::train(&args, control(never())).map(|_| out)
+    };
+    let (plain, paper) = (run("plain", 0.0).unwrap(), run("paper", 1.0).unwrap());
+    let data = |d: &Path| std::fs::read_to_string(d.join("data.json")).unwrap();
+    assert!(!data(&plain).contains("paper_fraction"));
+    assert!(
+        data(&paper).contains("\"paper_fraction\": 1.0"),
+        "{}",
+        data(&paper)
+    );
+    // Paper samples instead of deployment ones: other weights after the same step.
+    let weights = |d: &Path| {
+        candle_core::safetensors::load(d.join("latest.safetensors"), &candle_core::Device::Cpu)
+            .unwrap()
+            .into_iter()
+            .filter(|(k, _)| !k.starts_with("adam."))
+            .map(|(k, v)| (k, v.flatten_all().unwrap().to_vec1::<f32>().unwrap()))
+            .collect::<std::collections::BTreeMap<_, _>>()
+    };
+    assert_ne!(weights(&plain), weights(&paper));
+    // Only with the deployment protocol, and only a share.
+    let paper_protocol = ic_train::pose::TrainArgs {
+        paper_fraction: 0.5,
+        ..pose_args(&dir.path().join("bad"), 1, false)
+    };
+    let err = ic_train::pose::train(&paper_protocol, control(never())).unwrap_err();
+    assert!(format!("{err:#}").contains("--paper-fraction"), "{err:#}");
+    let err = run("too-much", 1.5).unwrap_err();
+    assert!(
+        format!("{err:#}").contains("--paper-fraction 1.5"),
+        "{err:#}"
+    );
 }
 
 #[test]
