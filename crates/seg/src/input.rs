@@ -102,7 +102,8 @@ pub fn prepare_input(
 /// camera) of each pixel of `depth` resized to `width`×`height` as [`resize_nearest`] does,
 /// each small pixel back-projected at the source pixel it was taken from. Central
 /// differences over [`NORMAL_STEP`] pixels each way; one-sided where one side has no depth or
-/// lies across a depth edge ([`NORMAL_DEPTH_STEP`]); zero where a direction has neither.
+/// lies across a depth edge ([`NORMAL_DEPTH_STEP`]); zero where a direction has neither, and
+/// everywhere for an empty depth map.
 pub fn normals(
     depth: &DepthImage,
     intrinsics: &Intrinsics,
@@ -111,6 +112,9 @@ pub fn normals(
 ) -> Vec<[f32; 3]> {
     let (sw, sh) = (depth.width as usize, depth.height as usize);
     let (w, h) = (width as usize, height as usize);
+    if sw == 0 || sh == 0 || depth.data.len() != sw * sh {
+        return vec![[0.0; 3]; w * h];
+    }
     let src = |i: usize, s: usize, d: usize| {
         (((i as f64 + 0.5) * s as f64 / d as f64) as usize).min(s - 1)
     };
