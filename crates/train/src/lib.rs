@@ -727,6 +727,13 @@ pub fn ema(avg: f64, x: f64) -> f64 {
     }
 }
 
+/// A uniform draw in [0, 1) from (`seed`, `index`): the per-sample choices of a mixed run
+/// (room scenes among clutter, paper samples among deployment ones), each with its own salt
+/// in `seed`.
+pub(crate) fn uniform_draw(seed: u64, index: u64) -> f64 {
+    (ic_data::mix_seed(seed, index) >> 11) as f64 / (1u64 << 53) as f64
+}
+
 /// Whether stderr is a terminal (the bar shows progress) or a log (lines do).
 pub fn interactive() -> bool {
     std::io::IsTerminal::is_terminal(&std::io::stderr())

@@ -524,8 +524,7 @@ pub fn train_corpora(
 /// Whether training sample `index` of a run with `--paper-fraction` follows the paper's
 /// protocol: a uniform draw from (`seed`, `index`) below `fraction`.
 pub fn is_paper_sample(seed: u64, index: u64, fraction: f64) -> bool {
-    let h = ic_data::mix_seed(seed ^ 0x7061_7065_725f_6d69, index);
-    ((h >> 11) as f64 / (1u64 << 53) as f64) < fraction
+    crate::uniform_draw(seed ^ 0x7061_7065_725f_6d69, index) < fraction
 }
 
 /// The pose network's side of [`crate::run`].

@@ -549,8 +549,7 @@ enum Source {
 /// Whether training scene `index` of a mixed run is a room scene: a uniform draw from
 /// (`seed`, `index`) below `room_fraction`.
 pub fn is_room_scene(seed: u64, index: u64, room_fraction: f64) -> bool {
-    let h = ic_data::mix_seed(seed ^ 0x0072_6f6f_6d6d_6978, index);
-    ((h >> 11) as f64 / (1u64 << 53) as f64) < room_fraction
+    crate::uniform_draw(seed ^ 0x0072_6f6f_6d6d_6978, index) < room_fraction
 }
 
 impl Source {
