@@ -54,6 +54,7 @@ mod pose;
 mod seg;
 mod symmetries;
 mod verify_report;
+mod weights;
 
 // Large element-wise tensor ops are ~10x slower with glibc's malloc (fresh pages each time).
 #[global_allocator]
@@ -112,6 +113,9 @@ enum Cmd {
     /// Learning curves of training runs in one SVG or PNG: the training loss above a
     /// validation column, against the iteration (e.g. a run from scratch against a fine-tune).
     PlotRuns(curves::PlotRunsArgs),
+    /// Write a training checkpoint's weights and configuration without Adam's moments or the
+    /// training state (the file to ship, as a run writes `best.safetensors`).
+    ExportWeights(weights::ExportWeightsArgs),
 }
 
 /// Which crate owns each benchmark file under `benches/`.
@@ -165,6 +169,7 @@ fn main() -> std::process::ExitCode {
         }
         Cmd::VerifyReport(args) => verify_report::run(args),
         Cmd::PlotRuns(args) => curves::run(args),
+        Cmd::ExportWeights(args) => weights::run(args),
         Cmd::FitClutterCalibration(args) => clutter_calibration::run(args),
         Cmd::Symmetries(args) => {
             init_tracing();

@@ -368,6 +368,47 @@ impl<N: Network> Trainer<N> {
     }
 }
 
+/// Which network a training checkpoint holds, by the training state in its metadata.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CheckpointKind {
+    /// `ic_pose.train_state`: a pose network's run.
+    Pose,
+    /// `ic_seg.train_state`: a segmentation network's run.
+    Seg,
+}
+
+/// Writes the weights and configuration of the training checkpoint `checkpoint` (a run's
+/// `latest.safetensors` or `final.safetensors`) to `out` atomically, without Adam's moments
+/// or the training state: the file inference loads, as the run writes `best.safetensors`.
+/// `out` may be `checkpoint` itself.
+///
+/// Errors (naming the file): unreadable, not a training checkpoint of either network (for
+/// instance already weights-only), or tensors that do not fit its configuration.
+pub fn export_weights(checkpoint: &Path, out: &Path) -> anyhow::Result<CheckpointKind> {
+    let meta = ic_nn::checkpoint::read_metadata(checkpoint)?;
+    let kind = if meta.contains_key(<ic_pose::PoseNet as Network>::STATE_KEY) {
+        CheckpointKind::Pose
+    } else if meta.contains_key(<ic_seg::unet::UNet as Network>::STATE_KEY) {
+        CheckpointKind::Seg
+    } else {
+        bail!(
+            "{}: not a training checkpoint (no {} or {} in its metadata; already weights only?)",
+            checkpoint.display(),
+            <ic_pose::PoseNet as Network>::STATE_KEY,
+            <ic_seg::unet::UNet as Network>::STATE_KEY
+        );
+    };
+    match kind {
+        CheckpointKind::Pose => PoseTrainer::resume(checkpoint)
+            .with_context(|| format!("reading {}", checkpoint.display()))?
+            .save_weights(out)?,
+        CheckpointKind::Seg => SegTrainer::resume(checkpoint)
+            .with_context(|| format!("reading {}", checkpoint.display()))?
+            .save_weights(out)?,
+    }
+    Ok(kind)
+}
+
 // ---------------------------------------------------------------------------------------
 // Stopping: Ctrl-C / SIGTERM set a flag that the loop reads after every iteration.
 

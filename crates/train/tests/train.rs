@@ -602,3 +602,32 @@ fn a_resumed_segmentation_run_takes_a_new_learning_rate() {
     let kept = ic_train::seg::make_trainer(&seg_args(&out, 2, true), &latest, None).unwrap();
     assert_ne!(kept.config().train.learning_rate, 1e-4);
 }
+
+#[test]
+fn exported_weights_are_the_checkpoints_weights_without_the_optimiser_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let (pose, seg) = (dir.path().join("pose"), dir.path().join("seg"));
+    // Two iterations, validated at the second: best.safetensors holds the weights of the
+    // checkpoint, written as inference files are.
+    ic_train::pose::train(&pose_args(&pose, 2, false), control(never())).unwrap();
+    seg_run(&seg, 2, false);
+    for (run, kind) in [
+        (&pose, ic_train::CheckpointKind::Pose),
+        (&seg, ic_train::CheckpointKind::Seg),
+    ] {
+        let out = run.join("exported.safetensors");
+        let got = ic_train::export_weights(&run.join("latest.safetensors"), &out).unwrap();
+        assert_eq!(got, kind);
+        assert_same_checkpoint(&out, &run.join("best.safetensors"));
+        let names = candle_core::safetensors::load(&out, &candle_core::Device::Cpu).unwrap();
+        assert!(names.keys().all(|n| !n.starts_with("adam.")));
+        // A weights-only file is refused, naming it.
+        let err = ic_train::export_weights(&out, &run.join("again.safetensors")).unwrap_err();
+        let msg = format!("{err:#}");
+        assert!(
+            msg.contains("exported.safetensors") && msg.contains("not a training checkpoint"),
+            "{msg}"
+        );
+        assert!(!run.join("again.safetensors").exists());
+    }
+}
