@@ -24,54 +24,64 @@ pub(crate) fn register_font() -> Result<(), EvalError> {
 }
 
 /// Registers the font, then calls `$draw` (a closure taking the drawing area) with a PNG or an
-/// SVG drawing area of `$size` for `$path`, chosen by the file's extension; errors name the
-/// file. The plot is drawn into a hidden temporary file beside `$path` (`.NAME.PID.partial.EXT`)
-/// and renamed over it once complete, so an earlier plot is never left half-written, and a
-/// failed plot leaves no temporary file behind. A macro, because the two backends are
-/// different types.
+/// SVG drawing area of `$size` (pixels, `(u32, u32)`) for `$path`, chosen by the file's
+/// extension; errors name the file. The plot is drawn in memory (an RGB buffer encoded as PNG,
+/// or the SVG text) and written with `ic_geometry::io::write_atomic_with` (temporary file,
+/// sync, rename), so an earlier plot is never left half-written, a failed plot leaves no
+/// temporary file behind, and a link or folder in its place is refused. A macro, because the
+/// two backends are different types.
 macro_rules! draw_to_file {
     ($path:expr, $size:expr, $draw:expr) => {{
         let path: &std::path::Path = $path;
+        let size: (u32, u32) = $size;
         crate::plot::register_font()?;
         let ext = path
             .extension()
             .and_then(|e| e.to_str())
             .map(str::to_ascii_lowercase);
-        let tmp = crate::plot::partial_path(path);
-        match ext.as_deref() {
-            Some("png") => ($draw)(BitMapBackend::new(&tmp, $size).into_drawing_area()),
-            Some("svg") => ($draw)(SVGBackend::new(&tmp, $size).into_drawing_area()),
+        let bytes: Result<Vec<u8>, EvalError> = match ext.as_deref() {
+            Some("png") => {
+                let mut rgb = vec![0u8; size.0 as usize * size.1 as usize * 3];
+                let drawn = ($draw)(BitMapBackend::with_buffer(&mut rgb, size).into_drawing_area());
+                drawn.and_then(|()| crate::plot::encode_png(&rgb, size))
+            }
+            Some("svg") => {
+                let mut svg = String::new();
+                let drawn = ($draw)(SVGBackend::with_string(&mut svg, size).into_drawing_area());
+                drawn.map(|()| svg.into_bytes())
+            }
             _ => Err(EvalError::Plot(
                 "the plot file must end in .png or .svg".into(),
             )),
-        }
-        .and_then(|()| {
-            std::fs::rename(&tmp, path).map_err(|e| EvalError::Plot(format!("cannot write: {e}")))
-        })
-        .map_err(|e| {
-            let _ = std::fs::remove_file(&tmp);
-            match e {
+        };
+        bytes
+            .and_then(|bytes| crate::plot::write_plot(path, &bytes))
+            .map_err(|e| match e {
                 EvalError::Plot(m) => EvalError::Plot(format!("{}: {m}", path.display())),
                 other => other,
-            }
-        })
+            })
     }};
 }
 pub(crate) use draw_to_file;
 
-/// The temporary file [`draw_to_file!`] draws into: hidden, beside `path`, with the process id
-/// (two processes plotting to one file do not share it) and `path`'s extension (the PNG
-/// backend picks the format by it).
-pub(crate) fn partial_path(path: &Path) -> std::path::PathBuf {
-    let name = path
-        .file_stem()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let ext = path
-        .extension()
-        .map(|e| e.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    path.with_file_name(format!(".{name}.{}.partial.{ext}", std::process::id()))
+/// An 8-bit RGB image of `size` (row-major, 3 bytes a pixel) as PNG bytes.
+pub(crate) fn encode_png(rgb: &[u8], size: (u32, u32)) -> Result<Vec<u8>, EvalError> {
+    let mut out = Vec::new();
+    let mut encoder = png::Encoder::new(&mut out, size.0, size.1);
+    encoder.set_color(png::ColorType::Rgb);
+    encoder.set_depth(png::BitDepth::Eight);
+    encoder
+        .write_header()
+        .and_then(|mut w| w.write_image_data(rgb))
+        .map_err(|e| EvalError::Plot(format!("encoding PNG: {e}")))?;
+    Ok(out)
+}
+
+/// Writes a drawn plot's bytes to `path` atomically.
+pub(crate) fn write_plot(path: &Path, bytes: &[u8]) -> Result<(), EvalError> {
+    use std::io::Write;
+    let io = |e: std::io::Error| EvalError::Plot(format!("cannot write: {e}"));
+    ic_geometry::io::write_atomic_with(path, |w| w.write_all(bytes).map_err(io), io)
 }
 
 /// A chart of `x` × `y` on `area` with its axes drawn and labelled (and a caption when
@@ -445,7 +455,18 @@ mod tests {
         std::fs::write(&svg, "earlier").unwrap();
         plot_accuracy_curves(&svg, &results, Curve::Rotation, 30.0).unwrap();
         assert!(std::fs::read_to_string(&svg).unwrap().contains("ours-ot"));
-        // A folder where the plot should go: drawing succeeds, the rename fails.
+        // A PNG is drawn in memory and encoded at the plot's size, not blank.
+        let png_path = dir.path().join("rot.png");
+        plot_accuracy_curves(&png_path, &results, Curve::Rotation, 30.0).unwrap();
+        let decoder = png::Decoder::new(std::io::BufReader::new(
+            std::fs::File::open(&png_path).unwrap(),
+        ));
+        let mut reader = decoder.read_info().unwrap();
+        let mut pixels = vec![0; reader.output_buffer_size().unwrap()];
+        let info = reader.next_frame(&mut pixels).unwrap();
+        assert_eq!((info.width, info.height), (720, 480));
+        assert!(pixels.iter().any(|&p| p < 128) && pixels.iter().any(|&p| p > 128));
+        // A folder where the plot should go: drawing succeeds, the write is refused.
         let taken = dir.path().join("taken.png");
         std::fs::create_dir(&taken).unwrap();
         let err = plot_accuracy_curves(&taken, &results, Curve::Rotation, 30.0).unwrap_err();
@@ -456,6 +477,6 @@ mod tests {
             .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
             .collect();
         names.sort();
-        assert_eq!(names, ["rot.svg", "taken.png"]);
+        assert_eq!(names, ["rot.png", "rot.svg", "taken.png"]);
     }
 }
