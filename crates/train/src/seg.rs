@@ -427,20 +427,16 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
     // depth-normals`: the preset's configuration (with the asked input), the init's weights
     // widened.
     let input: Option<SegInput> = args.input.as_deref().map(str::parse).transpose()?;
-    let widen = match init {
-        Some(p) => {
-            let c =
-                ic_seg::checkpoint::read_config(p).with_context(|| format!("{}", p.display()))?;
-            (c.net.outputs == 1 && SegConfig::preset(&args.preset)?.net.outputs == 2)
-                || input.is_some_and(|i| i != c.net.input)
-        }
-        None => false,
-    };
-    let mut cfg = match init {
-        Some(p) if !widen => {
-            ic_seg::checkpoint::read_config(p).with_context(|| format!("{}", p.display()))?
-        }
-        _ => SegConfig::preset(&args.preset)?,
+    let init_config = init
+        .map(|p| ic_seg::checkpoint::read_config(p).with_context(|| format!("{}", p.display())))
+        .transpose()?;
+    let preset = SegConfig::preset(&args.preset)?;
+    let widen = init_config.as_ref().is_some_and(|c| {
+        (c.net.outputs == 1 && preset.net.outputs == 2) || input.is_some_and(|i| i != c.net.input)
+    });
+    let mut cfg = match init_config {
+        Some(c) if !widen => c,
+        _ => preset,
     };
     if let Some(i) = input {
         cfg.net.input = i;
