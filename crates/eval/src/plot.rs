@@ -72,7 +72,10 @@ pub(crate) fn encode_png(rgb: &[u8], size: (u32, u32)) -> Result<Vec<u8>, EvalEr
     encoder.set_depth(png::BitDepth::Eight);
     encoder
         .write_header()
-        .and_then(|mut w| w.write_image_data(rgb))
+        .and_then(|mut w| {
+            w.write_image_data(rgb)?;
+            w.finish()
+        })
         .map_err(|e| EvalError::Plot(format!("encoding PNG: {e}")))?;
     Ok(out)
 }

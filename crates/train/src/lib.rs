@@ -399,14 +399,21 @@ pub fn export_weights(checkpoint: &Path, out: &Path) -> anyhow::Result<Checkpoin
         );
     };
     match kind {
-        CheckpointKind::Pose => PoseTrainer::resume(checkpoint)
-            .with_context(|| format!("reading {}", checkpoint.display()))?
-            .save_weights(out)?,
-        CheckpointKind::Seg => SegTrainer::resume(checkpoint)
-            .with_context(|| format!("reading {}", checkpoint.display()))?
-            .save_weights(out)?,
+        CheckpointKind::Pose => resave_weights::<ic_pose::PoseNet>(checkpoint, out)?,
+        CheckpointKind::Seg => resave_weights::<ic_seg::unet::UNet>(checkpoint, out)?,
     }
     Ok(kind)
+}
+
+/// [`Trainer::resume`] from `checkpoint`, then [`Trainer::save_weights`] to `out`.
+fn resave_weights<N: Network>(checkpoint: &Path, out: &Path) -> anyhow::Result<()>
+where
+    N::Error: std::error::Error + Send + Sync + 'static,
+{
+    Trainer::<N>::resume(checkpoint)
+        .with_context(|| format!("reading {}", checkpoint.display()))?
+        .save_weights(out)?;
+    Ok(())
 }
 
 // ---------------------------------------------------------------------------------------
