@@ -116,6 +116,9 @@ enum Cmd {
     /// Write a training checkpoint's weights and configuration without Adam's moments or the
     /// training state (the file to ship, as a run writes `best.safetensors`).
     ExportWeights(weights::ExportWeightsArgs),
+    /// The element-wise mean of several checkpoints' weights (weight averaging along the end
+    /// of a run), written as a weights-only file
+    AverageWeights(weights::AverageWeightsArgs),
 }
 
 /// Which crate owns each benchmark file under `benches/`.
@@ -170,6 +173,7 @@ fn main() -> std::process::ExitCode {
         Cmd::VerifyReport(args) => verify_report::run(args),
         Cmd::PlotRuns(args) => curves::run(args),
         Cmd::ExportWeights(args) => weights::run(args),
+        Cmd::AverageWeights(args) => weights::average(args),
         Cmd::FitClutterCalibration(args) => clutter_calibration::run(args),
         Cmd::Symmetries(args) => {
             init_tracing();

@@ -1,4 +1,5 @@
-//! `cargo xtask export-weights`: a training checkpoint's weights without its optimiser state.
+//! `cargo xtask export-weights`: a training checkpoint's weights without its optimiser state;
+//! `cargo xtask average-weights`: the mean of several checkpoints' weights.
 
 use std::path::PathBuf;
 
@@ -28,6 +29,28 @@ pub fn run(args: ExportWeightsArgs) -> Result<()> {
         before,
         args.out.display(),
         size(&args.out)
+    );
+    Ok(())
+}
+
+#[derive(Args)]
+pub struct AverageWeightsArgs {
+    /// Checkpoints of one network (weights-only or training), e.g. a run's `latest.safetensors`
+    /// copied at several iterations; repeat the flag. The first one's configuration is kept.
+    #[arg(long = "checkpoint", required = true)]
+    checkpoints: Vec<PathBuf>,
+    /// Where to write the averaged weights-only file (atomically).
+    #[arg(long)]
+    out: PathBuf,
+}
+
+pub fn average(args: AverageWeightsArgs) -> Result<()> {
+    let kind = ic_train::average_weights(&args.checkpoints, &args.out)?;
+    println!(
+        "{:?} weights: the mean of {} checkpoints written to {}",
+        kind,
+        args.checkpoints.len(),
+        args.out.display()
     );
     Ok(())
 }

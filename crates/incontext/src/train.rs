@@ -371,6 +371,7 @@ fn train_pose(a: &PoseTrainArgs, seed: u64) -> Result<Value> {
         objects: c.objects.display().to_string(),
         protocol: protocol.as_str().into(),
         paper_fraction: 0.0,
+        paper_objects: None,
         init: start.path().map(Path::to_path_buf),
         out: c.out.clone(),
         iterations: Some(c.iterations),

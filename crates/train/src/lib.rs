@@ -416,6 +416,86 @@ where
     Ok(())
 }
 
+/// Writes the element-wise mean of the network weights of `checkpoints` (weights-only or
+/// training checkpoints of one network, e.g. a run's checkpoints along the end of its
+/// learning-rate decay) to `out` atomically, as a weights-only file with the first one's
+/// configuration: weight averaging (Polyak; SWA, Izmailov et al. 2018), which smooths the
+/// swings between neighbouring checkpoints. Batch-norm running statistics are averaged
+/// like every other variable (`eval-pose --recalibrate-bn` re-estimates them if wanted).
+/// The mean is taken in f64. `out` may be one of the inputs.
+///
+/// Errors (naming the file): none given, unreadable, neither network's checkpoint, or a
+/// network configuration or tensor that differs from the first file's.
+pub fn average_weights(checkpoints: &[PathBuf], out: &Path) -> anyhow::Result<CheckpointKind> {
+    let Some(first) = checkpoints.first() else {
+        bail!("no checkpoint to average");
+    };
+    let kind_of = |path: &Path| -> anyhow::Result<CheckpointKind> {
+        let meta = ic_nn::checkpoint::read_metadata(path)?;
+        if meta.contains_key(<ic_pose::PoseNet as Network>::CONFIG_KEY) {
+            Ok(CheckpointKind::Pose)
+        } else if meta.contains_key(<ic_seg::unet::UNet as Network>::CONFIG_KEY) {
+            Ok(CheckpointKind::Seg)
+        } else {
+            bail!(
+                "{}: not a checkpoint of either network (no {} or {} in its metadata)",
+                path.display(),
+                <ic_pose::PoseNet as Network>::CONFIG_KEY,
+                <ic_seg::unet::UNet as Network>::CONFIG_KEY
+            )
+        }
+    };
+    let kind = kind_of(first)?;
+    for path in &checkpoints[1..] {
+        let other = kind_of(path)?;
+        if other != kind {
+            bail!(
+                "{}: a {other:?} checkpoint, but {} is a {kind:?} one",
+                path.display(),
+                first.display()
+            );
+        }
+    }
+    match kind {
+        CheckpointKind::Pose => average::<ic_pose::PoseNet>(checkpoints, out)?,
+        CheckpointKind::Seg => average::<ic_seg::unet::UNet>(checkpoints, out)?,
+    }
+    Ok(kind)
+}
+
+/// [`average_weights`] for one network type.
+fn average<N: Network>(checkpoints: &[PathBuf], out: &Path) -> anyhow::Result<()>
+where
+    N::Error: std::error::Error + Send + Sync + 'static,
+{
+    let first = &checkpoints[0];
+    let config = N::read_config(first).with_context(|| format!("reading {}", first.display()))?;
+    let mut trainer = Trainer::<N>::new(config, 0)?;
+    let mut sums: HashMap<String, Tensor> = HashMap::new();
+    for path in checkpoints {
+        // Checks the network configuration and every tensor's shape against the first's.
+        trainer
+            .load_weights(path)
+            .with_context(|| format!("reading {}", path.display()))?;
+        for (name, t) in trainer.weights() {
+            let t = t.to_dtype(candle_core::DType::F64)?;
+            let sum = match sums.remove(&name) {
+                Some(s) => (s + t)?,
+                None => t,
+            };
+            sums.insert(name, sum);
+        }
+    }
+    let n = checkpoints.len() as f64;
+    let mean = sums
+        .into_iter()
+        .map(|(name, s)| Ok((name, (s / n)?.to_dtype(candle_core::DType::F32)?)))
+        .collect::<candle_core::Result<HashMap<_, _>>>()?;
+    ic_nn::checkpoint::load_into_varmap(trainer.varmap(), &mean, out)?;
+    trainer.save_weights(out)?;
+    Ok(())
+}
+
 // ---------------------------------------------------------------------------------------
 // Stopping: Ctrl-C / SIGTERM set a flag that the loop reads after every iteration.
 

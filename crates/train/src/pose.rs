@@ -199,6 +199,11 @@ pub struct TrainArgs {
     /// deployment keeps what the paper protocol measures. Validation stays deployment. 0: none.
     #[arg(long, default_value_t = 0.0)]
     pub paper_fraction: f64,
+    /// With `--paper-fraction`: the objects the paper-protocol samples draw from (training
+    /// split; a folder or a weighted mixture, as `--objects`), e.g. only the blobs the paper
+    /// trained on. Default: the run's objects.
+    #[arg(long)]
+    pub paper_objects: Option<String>,
     /// Start from these weights (e.g. models/pose-cpu-ot.safetensors) and their configuration
     /// (the preset's overrides still apply; the network must keep its shape). Fresh Adam
     /// moments, iteration 0. Ignored when `--resume` finds a checkpoint.
@@ -433,6 +438,22 @@ pub fn train_corpora(
             "--paper-fraction needs --protocol deployment (the paper's samples are mixed into it)"
         );
     }
+    let paper_objects: Option<ObjectsSpec> = match &args.paper_objects {
+        None => None,
+        Some(_) if paper_fraction == 0.0 => {
+            bail!(
+                "--paper-objects needs --paper-fraction above 0 (it names what those samples draw)"
+            )
+        }
+        Some(spec) => Some(
+            spec.parse()
+                .with_context(|| format!("--paper-objects {spec}"))?,
+        ),
+    };
+    let paper_corpus = match &paper_objects {
+        None => train_corpus.clone(),
+        Some(spec) => open_objects(spec, Split::Train).context("--paper-objects")?,
+    };
     let paper_cfg = ObjectSampleConfig {
         symmetry_aware: scfg.symmetry_aware,
         ..sample_config(&cfg, SamplingProtocol::Paper)
@@ -449,6 +470,9 @@ pub fn train_corpora(
         // Only when used, so that the records of earlier runs still match.
         data["paper_fraction"] = serde_json::json!(paper_fraction);
         data["paper_sample"] = serde_json::to_value(&paper_cfg)?;
+        if let Some(spec) = &paper_objects {
+            data["paper_objects"] = spec.describe();
+        }
     }
     tracing::info!("data {}", serde_json::to_string(&data)?);
     check_data_record(&args.out.join("data.json"), &data, resuming)?;
@@ -465,6 +489,9 @@ pub fn train_corpora(
     }
     train_corpus.set_known_symmetries(symmetries.clone());
     val_corpus.set_known_symmetries(symmetries.clone());
+    if !Arc::ptr_eq(&paper_corpus, &train_corpus) {
+        paper_corpus.set_known_symmetries(symmetries.clone());
+    }
     let generator = Arc::new(ObjectSampleGenerator::new(
         train_corpus.clone(),
         scfg.clone(),
@@ -476,7 +503,7 @@ pub fn train_corpora(
             100.0 * paper_fraction
         );
         Some(Arc::new(ObjectSampleGenerator::new(
-            train_corpus.clone(),
+            paper_corpus.clone(),
             paper_cfg,
             seed,
         )?))
@@ -495,6 +522,7 @@ pub fn train_corpora(
         bn_batches,
         symmetries,
         symmetries_path,
+        paper_corpus: (!Arc::ptr_eq(&paper_corpus, &train_corpus)).then_some(paper_corpus),
         train_corpus,
         val_corpus,
     };
@@ -539,6 +567,8 @@ pub struct PoseTask {
     pub symmetries_path: PathBuf,
     pub train_corpus: Arc<Corpus>,
     pub val_corpus: Arc<Corpus>,
+    /// The `--paper-objects` corpus when it is not the training corpus.
+    pub paper_corpus: Option<Arc<Corpus>>,
 }
 
 impl Task for PoseTask {
@@ -618,6 +648,9 @@ impl Task for PoseTask {
     fn save(&mut self, path: &Path) -> Result<()> {
         self.symmetries.extend(self.train_corpus.found_symmetries());
         self.symmetries.extend(self.val_corpus.found_symmetries());
+        if let Some(paper) = &self.paper_corpus {
+            self.symmetries.extend(paper.found_symmetries());
+        }
         write_symmetry_cache(&self.symmetries_path, &self.symmetries)?;
         Ok(self.trainer.save(path)?)
     }

@@ -18,6 +18,7 @@ fn pose_args(out: &Path, iterations: u64, resume: bool) -> ic_train::pose::Train
         objects: "procedural@3:1".into(),
         protocol: "paper".into(),
         paper_fraction: 0.0,
+        paper_objects: None,
         init: None,
         out: out.to_path_buf(),
         iterations: Some(iterations),
@@ -147,6 +148,33 @@ fn a_paper_fraction_mixes_the_papers_samples_into_a_deployment_run() {
             .collect::<std::collections::BTreeMap<_, _>>()
     };
     assert_ne!(weights(&plain), weights(&paper));
+    // --paper-objects: the paper samples come from those objects instead of the run's
+    // (recorded in data.json), and only with a paper share.
+    let other_objects = {
+        let out = dir.path().join("paper-other-objects");
+        let args = ic_train::pose::TrainArgs {
+            protocol: "deployment".into(),
+            paper_fraction: 1.0,
+            paper_objects: Some("procedural@5:1".into()),
+            ..pose_args(&out, 1, false)
+        };
+        ic_train::pose::train(&args, control(never())).unwrap();
+        out
+    };
+    assert!(
+        data(&other_objects).contains("\"paper_objects\"")
+            && data(&other_objects).contains("procedural@5:1"),
+        "{}",
+        data(&other_objects)
+    );
+    assert_ne!(weights(&other_objects), weights(&paper));
+    let no_share = ic_train::pose::TrainArgs {
+        protocol: "deployment".into(),
+        paper_objects: Some("procedural@5:1".into()),
+        ..pose_args(&dir.path().join("no-share"), 1, false)
+    };
+    let err = ic_train::pose::train(&no_share, control(never())).unwrap_err();
+    assert!(format!("{err:#}").contains("--paper-objects"), "{err:#}");
     // Only with the deployment protocol, and only a share.
     let paper_protocol = ic_train::pose::TrainArgs {
         paper_fraction: 0.5,
@@ -628,4 +656,60 @@ fn exported_weights_are_the_checkpoints_weights_without_the_optimiser_state() {
         );
         assert!(!run.join("again.safetensors").exists());
     }
+}
+
+#[test]
+fn averaged_weights_are_the_element_wise_mean_and_one_file_averages_to_itself() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b, seg) = (
+        dir.path().join("a"),
+        dir.path().join("b"),
+        dir.path().join("seg"),
+    );
+    ic_train::pose::train(&pose_args(&a, 2, false), control(never())).unwrap();
+    let mut other = pose_args(&b, 2, false);
+    other.seed = 8;
+    ic_train::pose::train(&other, control(never())).unwrap();
+    let (wa, wb) = (a.join("best.safetensors"), b.join("best.safetensors"));
+
+    // One file: its own weights and configuration, bit for bit.
+    let alone = dir.path().join("alone.safetensors");
+    let kind = ic_train::average_weights(std::slice::from_ref(&wa), &alone).unwrap();
+    assert_eq!(kind, ic_train::CheckpointKind::Pose);
+    assert_same_checkpoint(&alone, &wa);
+
+    // Two runs (one given as its training checkpoint): the mean of every tensor.
+    let mean = dir.path().join("mean.safetensors");
+    ic_train::average_weights(&[wa.clone(), b.join("latest.safetensors")], &mean).unwrap();
+    let load = |p: &Path| candle_core::safetensors::load(p, &candle_core::Device::Cpu).unwrap();
+    let (ta, tb, tm) = (load(&wa), load(&wb), load(&mean));
+    assert_eq!(tm.len(), ta.len());
+    let mut differing = 0;
+    for (name, m) in &tm {
+        let flat = |t: &candle_core::Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let (x, y, z) = (flat(&ta[name]), flat(&tb[name]), flat(m));
+        differing += usize::from(x != y);
+        for ((x, y), z) in x.iter().zip(&y).zip(&z) {
+            let want = ((*x as f64 + *y as f64) / 2.0) as f32;
+            assert_eq!(z.to_bits(), want.to_bits(), "{name}: {x} {y} → {z}");
+        }
+    }
+    assert!(
+        differing > 10,
+        "the two runs must differ ({differing} tensors do)"
+    );
+
+    // A segmentation checkpoint among pose ones is refused, naming it; nothing is written.
+    seg_run(&seg, 2, false);
+    let refused = dir.path().join("refused.safetensors");
+    let err = ic_train::average_weights(&[wa, seg.join("best.safetensors")], &refused).unwrap_err();
+    let msg = format!("{err:#}");
+    assert!(
+        msg.contains("seg") && msg.contains("Seg checkpoint"),
+        "{msg}"
+    );
+    assert!(!refused.exists());
+    // Nothing to average is an error, not an empty file.
+    assert!(ic_train::average_weights(&[], &refused).is_err());
+    assert!(!refused.exists());
 }
