@@ -90,6 +90,41 @@ fn register_with_a_mask_finds_the_pose_and_writes_every_output() {
 }
 
 #[test]
+fn the_real_object_weights_beside_the_default_load_and_find_the_pose() {
+    // models/pose-cpu-softmax-scratch.safetensors is not built in: `--pose-model` reads it.
+    let weights = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../models/pose-cpu-softmax-scratch.safetensors");
+    let sc = SmallScene::new();
+    let o = check(
+        &[
+            "register",
+            "--model",
+            &sc.p("model.ply"),
+            "--depth",
+            &sc.p("depth.png"),
+            "--camera",
+            &sc.p("camera.json"),
+            "--mask",
+            &sc.p("mask.png"),
+            "--pose-model",
+            weights.to_str().unwrap(),
+            "--json",
+            "-q",
+            "--seed",
+            "1",
+        ],
+        0,
+        &[],
+    );
+    let pose = pose_of(&json_stdout(&o)["pose"]);
+    let (err, diameter) = add_s(&sc.path("model.ply"), &pose, &sc.truth);
+    assert!(
+        err < 0.1 * diameter,
+        "ADD-S {err} mm, diameter {diameter} mm"
+    );
+}
+
+#[test]
 fn render_writes_depth_and_mask_that_match_the_scene() {
     let sc = SmallScene::new();
     let pose = sc.path("truth.json");
