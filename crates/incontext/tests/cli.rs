@@ -95,27 +95,10 @@ fn the_real_object_weights_beside_the_default_load_and_find_the_pose() {
     let weights = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../../models/pose-cpu-softmax-scratch.safetensors");
     let sc = SmallScene::new();
-    let o = check(
-        &[
-            "register",
-            "--model",
-            &sc.p("model.ply"),
-            "--depth",
-            &sc.p("depth.png"),
-            "--camera",
-            &sc.p("camera.json"),
-            "--mask",
-            &sc.p("mask.png"),
-            "--pose-model",
-            weights.to_str().unwrap(),
-            "--json",
-            "-q",
-            "--seed",
-            "1",
-        ],
-        0,
-        &[],
-    );
+    let mut args = register_args(&sc, "--pose-model", weights.to_str().unwrap());
+    args.extend(["--json", "-q", "--seed", "1"].map(String::from));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let o = check(&args, 0, &[]);
     let pose = pose_of(&json_stdout(&o)["pose"]);
     let (err, diameter) = add_s(&sc.path("model.ply"), &pose, &sc.truth);
     assert!(

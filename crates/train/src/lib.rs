@@ -377,6 +377,45 @@ pub enum CheckpointKind {
     Seg,
 }
 
+impl CheckpointKind {
+    /// The metadata key of a training checkpoint of this network (its training state).
+    fn state_key(self) -> &'static str {
+        match self {
+            CheckpointKind::Pose => <ic_pose::PoseNet as Network>::STATE_KEY,
+            CheckpointKind::Seg => <ic_seg::unet::UNet as Network>::STATE_KEY,
+        }
+    }
+
+    /// The metadata key of any checkpoint of this network (its configuration).
+    fn config_key(self) -> &'static str {
+        match self {
+            CheckpointKind::Pose => <ic_pose::PoseNet as Network>::CONFIG_KEY,
+            CheckpointKind::Seg => <ic_seg::unet::UNet as Network>::CONFIG_KEY,
+        }
+    }
+}
+
+/// Which network the checkpoint `path` holds, by which network's `key` its metadata carries;
+/// otherwise the error `path: {not_what} (no … or … in its metadata{hint})`.
+fn checkpoint_kind(
+    path: &Path,
+    key: fn(CheckpointKind) -> &'static str,
+    not_what: &str,
+    hint: &str,
+) -> anyhow::Result<CheckpointKind> {
+    let meta = ic_nn::checkpoint::read_metadata(path)?;
+    let kinds = [CheckpointKind::Pose, CheckpointKind::Seg];
+    match kinds.into_iter().find(|&k| meta.contains_key(key(k))) {
+        Some(kind) => Ok(kind),
+        None => bail!(
+            "{}: {not_what} (no {} or {} in its metadata{hint})",
+            path.display(),
+            key(kinds[0]),
+            key(kinds[1])
+        ),
+    }
+}
+
 /// Writes the weights and configuration of the training checkpoint `checkpoint` (a run's
 /// `latest.safetensors` or `final.safetensors`) to `out` atomically, without Adam's moments
 /// or the training state: the file inference loads, as the run writes `best.safetensors`.
@@ -385,19 +424,12 @@ pub enum CheckpointKind {
 /// Errors (naming the file): unreadable, not a training checkpoint of either network (for
 /// instance already weights-only), or tensors that do not fit its configuration.
 pub fn export_weights(checkpoint: &Path, out: &Path) -> anyhow::Result<CheckpointKind> {
-    let meta = ic_nn::checkpoint::read_metadata(checkpoint)?;
-    let kind = if meta.contains_key(<ic_pose::PoseNet as Network>::STATE_KEY) {
-        CheckpointKind::Pose
-    } else if meta.contains_key(<ic_seg::unet::UNet as Network>::STATE_KEY) {
-        CheckpointKind::Seg
-    } else {
-        bail!(
-            "{}: not a training checkpoint (no {} or {} in its metadata; already weights only?)",
-            checkpoint.display(),
-            <ic_pose::PoseNet as Network>::STATE_KEY,
-            <ic_seg::unet::UNet as Network>::STATE_KEY
-        );
-    };
+    let kind = checkpoint_kind(
+        checkpoint,
+        CheckpointKind::state_key,
+        "not a training checkpoint",
+        "; already weights only?",
+    )?;
     match kind {
         CheckpointKind::Pose => resave_weights::<ic_pose::PoseNet>(checkpoint, out)?,
         CheckpointKind::Seg => resave_weights::<ic_seg::unet::UNet>(checkpoint, out)?,
@@ -430,20 +462,13 @@ pub fn average_weights(checkpoints: &[PathBuf], out: &Path) -> anyhow::Result<Ch
     let Some(first) = checkpoints.first() else {
         bail!("no checkpoint to average");
     };
-    let kind_of = |path: &Path| -> anyhow::Result<CheckpointKind> {
-        let meta = ic_nn::checkpoint::read_metadata(path)?;
-        if meta.contains_key(<ic_pose::PoseNet as Network>::CONFIG_KEY) {
-            Ok(CheckpointKind::Pose)
-        } else if meta.contains_key(<ic_seg::unet::UNet as Network>::CONFIG_KEY) {
-            Ok(CheckpointKind::Seg)
-        } else {
-            bail!(
-                "{}: not a checkpoint of either network (no {} or {} in its metadata)",
-                path.display(),
-                <ic_pose::PoseNet as Network>::CONFIG_KEY,
-                <ic_seg::unet::UNet as Network>::CONFIG_KEY
-            )
-        }
+    let kind_of = |path: &Path| {
+        checkpoint_kind(
+            path,
+            CheckpointKind::config_key,
+            "not a checkpoint of either network",
+            "",
+        )
     };
     let kind = kind_of(first)?;
     for path in &checkpoints[1..] {
