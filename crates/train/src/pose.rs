@@ -450,10 +450,11 @@ pub fn train_corpora(
                 .with_context(|| format!("--paper-objects {spec}"))?,
         ),
     };
-    let paper_corpus = match &paper_objects {
-        None => train_corpus.clone(),
-        Some(spec) => open_objects(spec, Split::Train).context("--paper-objects")?,
-    };
+    // The `--paper-objects` corpus; `None`: the paper samples draw from the training corpus.
+    let paper_corpus = paper_objects
+        .as_ref()
+        .map(|spec| open_objects(spec, Split::Train).context("--paper-objects"))
+        .transpose()?;
     let paper_cfg = ObjectSampleConfig {
         symmetry_aware: scfg.symmetry_aware,
         ..sample_config(&cfg, SamplingProtocol::Paper)
@@ -489,8 +490,8 @@ pub fn train_corpora(
     }
     train_corpus.set_known_symmetries(symmetries.clone());
     val_corpus.set_known_symmetries(symmetries.clone());
-    if !Arc::ptr_eq(&paper_corpus, &train_corpus) {
-        paper_corpus.set_known_symmetries(symmetries.clone());
+    if let Some(paper) = &paper_corpus {
+        paper.set_known_symmetries(symmetries.clone());
     }
     let generator = Arc::new(ObjectSampleGenerator::new(
         train_corpus.clone(),
@@ -503,7 +504,7 @@ pub fn train_corpora(
             100.0 * paper_fraction
         );
         Some(Arc::new(ObjectSampleGenerator::new(
-            paper_corpus.clone(),
+            paper_corpus.clone().unwrap_or_else(|| train_corpus.clone()),
             paper_cfg,
             seed,
         )?))
@@ -522,7 +523,7 @@ pub fn train_corpora(
         bn_batches,
         symmetries,
         symmetries_path,
-        paper_corpus: (!Arc::ptr_eq(&paper_corpus, &train_corpus)).then_some(paper_corpus),
+        paper_corpus,
         train_corpus,
         val_corpus,
     };
