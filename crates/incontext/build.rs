@@ -8,8 +8,12 @@
 
 use std::path::Path;
 
-const MODELS: [(&str, &str); 4] = [
+const MODELS: [(&str, &str); 5] = [
     ("pose-cpu-softmax.safetensors", "ic_embed_pose_softmax"),
+    (
+        "pose-cpu-softmax-scratch.safetensors",
+        "ic_embed_pose_softmax_second",
+    ),
     ("pose-cpu-ot.safetensors", "ic_embed_pose_ot"),
     ("seg-clutter.safetensors", "ic_embed_seg"),
     ("seg-cpu.safetensors", "ic_embed_seg_one_object"),

@@ -107,6 +107,8 @@ class Registrar:
         verify_top: int = 8,
         pose_model: Optional[_Path] = None,
         seg_model: Optional[_Path] = None,
+        second_pose_model: Optional[_Path] = None,
+        second_pose: bool = True,
     ) -> None: ...
     def register(
         self,

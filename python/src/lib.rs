@@ -514,8 +514,11 @@ fn parse_refine(s: &str) -> PyResult<ic_pose::Refine> {
 /// own); `refine`: "icp" or "none"; `threads`: compute threads (None: all logical CPUs);
 /// `seed`: the seed of every random choice (`incontext register --seed`); `rotations`,
 /// `hypotheses`, `verify_top`: as the flags of `incontext register`; `pose_model`,
-/// `seg_model`: checkpoints instead of the shipped networks (a `seg_model` is then the only
-/// segmentation network: no one-object second opinion).
+/// `seg_model`: checkpoints instead of the shipped networks (a `pose_model` or `seg_model` is
+/// then the only one of its kind: no second pose network, no one-object second opinion);
+/// `second_pose_model`: a second pose checkpoint whose hypotheses join the main network's in
+/// verification, instead of the shipped one; `second_pose=False`: the main network alone
+/// (`register --no-second-pose`).
 #[pyclass(module = "incontext", frozen)]
 struct Registrar {
     /// Without the segmentation network: used when a mask is given (as the command line).
@@ -553,7 +556,7 @@ impl Registrar {
 #[pymethods]
 impl Registrar {
     #[new]
-    #[pyo3(signature = (head = Some("softmax"), refine = "icp", threads = None, seed = 0, *, rotations = 24, hypotheses = 1, verify_top = 8, pose_model = None, seg_model = None))]
+    #[pyo3(signature = (head = Some("softmax"), refine = "icp", threads = None, seed = 0, *, rotations = 24, hypotheses = 1, verify_top = 8, pose_model = None, seg_model = None, second_pose_model = None, second_pose = true))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -566,7 +569,14 @@ impl Registrar {
         verify_top: u32,
         pose_model: Option<PathBuf>,
         seg_model: Option<PathBuf>,
+        second_pose_model: Option<PathBuf>,
+        second_pose: bool,
     ) -> PyResult<Self> {
+        if !second_pose && second_pose_model.is_some() {
+            return Err(value_error(
+                "second_pose_model is given but second_pose is False".into(),
+            ));
+        }
         let head = head.map(parse_head).transpose()?;
         let refine = parse_refine(refine)?;
         incontext::register::parse_rotations(&rotations.to_string())
@@ -604,7 +614,12 @@ impl Registrar {
         let with_seg = seg_model.is_some() || incontext::models::SEG.available();
         let (bare, segmenting) = py
             .detach(|| -> Result<_, CliError> {
-                let mut builder = Pipeline::builder().options(options);
+                let mut builder = Pipeline::builder()
+                    .options(options)
+                    .second_pose(second_pose);
+                if let Some(path) = &second_pose_model {
+                    builder = builder.second_pose_model(path);
+                }
                 if let Some(head) = head {
                     builder = builder.head(head);
                 }
@@ -745,8 +760,9 @@ impl Registrar {
 
     fn __repr__(&self) -> String {
         format!(
-            "Registrar(pose_model={:?}, seg_model={:?}, seed={}, threads={:?}, options={:?})",
+            "Registrar(pose_model={:?}, second_pose_model={:?}, seg_model={:?}, seed={}, threads={:?}, options={:?})",
             self.bare.pose_source(),
+            self.bare.second_pose_source(),
             self.segmenting.as_ref().and_then(|p| p.seg_source()),
             self.seed,
             self.threads,

@@ -180,6 +180,10 @@ def test_a_checkpoint_of_another_network_shape_is_a_value_error(demo, tmp_path):
         incontext.Registrar(pose_model=demo / "camera.json")
     with raises(ValueError, "model.ply", "segmentation model"):
         incontext.Registrar(seg_model=demo / "model.ply")
+    with raises(ValueError, "camera.json", "second pose model"):
+        incontext.Registrar(second_pose_model=demo / "camera.json")
+    with raises(ValueError, "second_pose_model", "second_pose is False"):
+        incontext.Registrar(second_pose_model=demo / "camera.json", second_pose=False)
 
 
 def test_an_empty_mask_is_a_value_error(scene, fast):

@@ -56,6 +56,17 @@ pub struct PostArgs {
     input_width: Option<u32>,
     #[arg(long)]
     input_height: Option<u32>,
+    /// The instances standing out of the scene's support planes (`ic_seg::support`): the least
+    /// height above a plane, relative to the depth (e.g. 0.01); 0 turns them off.
+    #[arg(long)]
+    support_height: Option<f32>,
+    /// With support instances on: the planes' narrowest inlier band, relative to the depth.
+    #[arg(long)]
+    support_plane_threshold: Option<f32>,
+    /// With support instances on: whether the network's instances first grow into the pixels
+    /// off the planes that they reach (`true` / `false`).
+    #[arg(long)]
+    support_grow: Option<bool>,
 }
 
 /// `cargo xtask seg-post`: writes the weights of `--model` with new post-processing settings
@@ -87,6 +98,14 @@ pub fn set_post(args: PostArgs) -> Result<()> {
     }
     if let Some(v) = args.input_height {
         cfg.net.input_height = v;
+    }
+    if let Some(height) = args.support_height {
+        cfg.post.set_support(height, args.support_plane_threshold);
+    } else if args.support_plane_threshold.is_some() || args.support_grow.is_some() {
+        anyhow::bail!("--support-plane-threshold and --support-grow need --support-height");
+    }
+    if let (Some(s), Some(grow)) = (&mut cfg.post.support, args.support_grow) {
+        s.grow = grow;
     }
     cfg.validate()?;
     // Only the network's tensors: a training checkpoint's Adam moments are left behind.

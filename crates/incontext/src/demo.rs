@@ -126,6 +126,7 @@ pub fn run(args: &DemoArgs, seed: u64) -> Result<Value> {
     let files = DemoFiles::new(out);
     let ins: Vec<crate::outputs::Named> = [
         ("--pose-model", &args.networks.pose_model),
+        ("--second-pose-model", &args.networks.second_pose_model),
         ("--seg-model", &args.networks.seg_model),
     ]
     .iter()

@@ -90,9 +90,17 @@ pub struct EvalArgs {
     /// to `candidates.jsonl` — the data for studying the verdict in clutter. 0 = off.
     #[arg(long, default_value_t = 0)]
     pub candidates: usize,
-    /// A pose checkpoint instead of the shipped one (its head must be the methods' head).
+    /// A pose checkpoint instead of the shipped one (its head must be the methods' head); it
+    /// is then the only pose network unless --second-pose-model is given.
     #[arg(long)]
     pub pose_model: Option<PathBuf>,
+    /// A second pose checkpoint of the same head whose hypotheses join the main network's in
+    /// the verified and sweep methods, instead of the shipped second network (softmax only).
+    #[arg(long, conflicts_with = "no_second_pose")]
+    pub second_pose_model: Option<PathBuf>,
+    /// The verified and sweep methods use the main pose network alone.
+    #[arg(long)]
+    pub no_second_pose: bool,
     /// A segmentation checkpoint instead of the shipped ones (it is then the only one: no
     /// one-object second opinion).
     #[arg(long)]
@@ -215,10 +223,12 @@ pub struct Pipelines {
 }
 
 impl Pipelines {
+    /// One pipeline per head of `methods`, with the networks `args` names (`--pose-model`,
+    /// `--second-pose-model`, `--no-second-pose`, `--seg-model`); the segmentation network
+    /// only `with_seg`.
     pub fn load(
         methods: &[Method],
-        pose_model: Option<&Path>,
-        seg_model: Option<&Path>,
+        args: &EvalArgs,
         with_seg: bool,
         options: PipelineOptions,
     ) -> Result<Pipelines> {
@@ -230,11 +240,15 @@ impl Pipelines {
             let mut builder = Pipeline::builder()
                 .head(m.head)
                 .segmentation(with_seg)
-                .options(options);
-            if let Some(path) = pose_model {
+                .options(options)
+                .second_pose(!args.no_second_pose);
+            if let Some(path) = &args.pose_model {
                 builder = builder.pose_model(path);
             }
-            if let Some(path) = seg_model {
+            if let Some(path) = &args.second_pose_model {
+                builder = builder.second_pose_model(path);
+            }
+            if let Some(path) = &args.seg_model {
                 builder = builder.seg_model(path);
             }
             let p = builder.build()?;
@@ -466,6 +480,7 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
         .unwrap_or_else(|| PathBuf::from("results.jsonl"));
     let ins: Vec<crate::outputs::Named> = [
         ("--pose-model", &args.pose_model),
+        ("--second-pose-model", &args.second_pose_model),
         ("--seg-model", &args.seg_model),
     ]
     .iter()
@@ -489,8 +504,7 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
     }
     let mut pipelines = Pipelines::load(
         methods,
-        args.pose_model.as_deref(),
-        args.seg_model.as_deref(),
+        args,
         any_room && !args.gt_mask,
         args.pipeline_options(),
     )?;
@@ -658,8 +672,7 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
     let subsets = datasets(dir, &args.split)?;
     let mut pipelines = Pipelines::load(
         methods,
-        args.pose_model.as_deref(),
-        args.seg_model.as_deref(),
+        args,
         !args.gt_mask,
         // BOP scores the best `inst_count` estimates of a target whatever their confidence
         // (it only ranks them): several instances come from every one the `--all` search
@@ -1058,8 +1071,7 @@ fn run_frames(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Res
     inputs::create_dir(&out)?;
     let mut pipelines = Pipelines::load(
         methods,
-        args.pose_model.as_deref(),
-        args.seg_model.as_deref(),
+        args,
         true,
         PipelineOptions {
             all_min_confidence: args.min_confidence,

@@ -52,6 +52,19 @@ pub const POSE_SOFTMAX: Shipped = Shipped {
     bytes: None,
 };
 
+/// The second softmax-head pose network (`models/pose-cpu-softmax-scratch.safetensors`, trained
+/// from scratch on every viewpoint of real objects): its hypotheses join the main network's in
+/// the verified pipeline ([`crate::Pipeline::with_second_pose`]).
+pub const POSE_SOFTMAX_SECOND: Shipped = Shipped {
+    file: "pose-cpu-softmax-scratch.safetensors",
+    #[cfg(ic_embed_pose_softmax_second)]
+    bytes: Some(include_bytes!(
+        "../../../models/pose-cpu-softmax-scratch.safetensors"
+    )),
+    #[cfg(not(ic_embed_pose_softmax_second))]
+    bytes: None,
+};
+
 /// The optimal-transport-head pose network (`models/pose-cpu-ot.safetensors`).
 pub const POSE_OT: Shipped = Shipped {
     file: "pose-cpu-ot.safetensors",
@@ -165,30 +178,58 @@ pub struct LoadedPose {
 /// Loads `path`, or the shipped network of `head` when `path` is `None`. With both, the
 /// checkpoint's head must be `head`.
 pub fn load_pose(path: Option<&Path>, head: Option<Head>) -> Result<LoadedPose> {
+    let shipped = shipped_pose(head.unwrap_or(Head::Softmax));
+    load_pose_from(path, &shipped, head, "pose model", "--pose-model")
+}
+
+/// The shipped second pose network of `head` ([`POSE_SOFTMAX_SECOND`] for softmax, none for
+/// OT), or `None` when there is none or this build has it neither embedded nor in the
+/// workspace.
+pub fn load_pose_second(head: Head) -> Result<Option<LoadedPose>> {
+    let shipped = match head {
+        Head::Softmax => POSE_SOFTMAX_SECOND,
+        Head::Ot => return Ok(None),
+    };
+    if !shipped.available() {
+        return Ok(None);
+    }
+    load_pose_from(
+        None,
+        &shipped,
+        Some(head),
+        "second pose model",
+        "--second-pose-model",
+    )
+    .map(Some)
+}
+
+/// Loads `path`, or `shipped` when `path` is `None` (`what` and `flag` name it in errors);
+/// with `head`, the checkpoint must have it.
+fn load_pose_from(
+    path: Option<&Path>,
+    shipped: &Shipped,
+    head: Option<Head>,
+    what: &str,
+    flag: &str,
+) -> Result<LoadedPose> {
     let (file, source) = match path {
         Some(p) => {
-            check_readable(p, "pose model")?;
+            check_readable(p, what)?;
             (
                 CheckpointFile::Path(p.to_path_buf()),
                 p.display().to_string(),
             )
         }
-        None => {
-            let shipped = shipped_pose(head.unwrap_or(Head::Softmax));
-            (
-                shipped_file(&shipped, "pose model", "--pose-model")?,
-                shipped.describe(),
-            )
-        }
+        None => (shipped_file(shipped, what, flag)?, shipped.describe()),
     };
     let estimator = PoseEstimator::load(file.path())
-        .map_err(|e| PipelineError::from(e).context(format!("loading the pose model {source}")))?;
+        .map_err(|e| PipelineError::from(e).context(format!("loading the {what} {source}")))?;
     let got = estimator.config().net.head;
     if let Some(want) = head
         && got != want
     {
         return Err(PipelineError::input(format!(
-            "{source}: the pose model has a {} head, but --head {} was asked for",
+            "{source}: the {what} has a {} head, but --head {} was asked for",
             got.as_str(),
             want.as_str()
         )));

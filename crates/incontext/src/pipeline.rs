@@ -912,6 +912,9 @@ pub const DEFAULT_ROTATIONS: usize = 24;
 /// object units (the mesh scaled to [-1, 1] on its longest side).
 pub struct Pipeline {
     pose: LoadedPose,
+    /// A second pose network whose hypotheses join the main one's in verification
+    /// ([`Pipeline::with_second_pose`]).
+    pose_second: Option<LoadedPose>,
     seg: Option<LoadedSeg>,
     /// The one-object network, asked when the instances of `seg` gave no `ok` pose
     /// ([`Pipeline::with_one_object_seg`]).
@@ -942,6 +945,8 @@ pub struct Pipeline {
 #[derive(Clone, Debug)]
 pub struct PipelineBuilder {
     pose_model: Option<PathBuf>,
+    second_pose_model: Option<PathBuf>,
+    second_pose: bool,
     head: Option<Head>,
     seg_model: Option<PathBuf>,
     segmentation: bool,
@@ -953,6 +958,8 @@ impl Default for PipelineBuilder {
     fn default() -> Self {
         PipelineBuilder {
             pose_model: None,
+            second_pose_model: None,
+            second_pose: true,
             head: None,
             seg_model: None,
             segmentation: true,
@@ -977,6 +984,23 @@ impl PipelineBuilder {
     /// softmax network, or the checkpoint's own head.
     pub fn head(mut self, head: Head) -> Self {
         self.head = Some(head);
+        self
+    }
+
+    /// A second pose checkpoint of the same head, whose hypotheses join the main network's in
+    /// verification ([`Pipeline::with_second_pose`]), instead of the shipped second network.
+    pub fn second_pose_model(mut self, path: impl Into<PathBuf>) -> Self {
+        self.second_pose_model = Some(path.into());
+        self
+    }
+
+    /// Whether to load a second pose network (default true): the one of
+    /// [`PipelineBuilder::second_pose_model`], else the shipped one of the head
+    /// ([`crate::models::POSE_SOFTMAX_SECOND`] for softmax; none for OT) unless
+    /// [`PipelineBuilder::pose_model`] replaced the main network (a checkpoint given alone is
+    /// used alone).
+    pub fn second_pose(mut self, load: bool) -> Self {
+        self.second_pose = load;
         self
     }
 
@@ -1101,7 +1125,17 @@ impl PipelineBuilder {
         } else {
             (None, None)
         };
+        let head = pose.estimator.config().net.head;
+        let second = match (self.second_pose, &self.second_pose_model, &self.pose_model) {
+            (false, _, _) => None,
+            (true, Some(path), _) => Some(crate::models::load_pose(Some(path), Some(head))?),
+            (true, None, None) => crate::models::load_pose_second(head)?,
+            (true, None, Some(_)) => None,
+        };
         let mut pipeline = Pipeline::new(pose, seg, self.options);
+        if let Some(second) = second {
+            pipeline = pipeline.with_second_pose(second)?;
+        }
         pipeline.seg_one_object = one_object;
         pipeline.pool = pool;
         Ok(pipeline)
@@ -1123,6 +1157,7 @@ impl Pipeline {
         pose.estimator.recovery.refine = Refine::None;
         Pipeline {
             pose,
+            pose_second: None,
             seg,
             seg_one_object: None,
             options,
@@ -1143,6 +1178,36 @@ impl Pipeline {
     pub fn with_one_object_seg(mut self, seg: LoadedSeg) -> Self {
         self.seg_one_object = Some(seg);
         self
+    }
+
+    /// Adds a second pose network of the same head: in the verified pipeline (`register`'s
+    /// default, and the sweep without ICP) its own rotated copies, ranking and passes make a
+    /// second set of up to [`PipelineOptions::verify_top`] hypotheses that render-and-compare
+    /// verifies beside the main network's, the best score winning (ties: the main network's).
+    /// Two networks trained differently fail on different views, so the right pose is more
+    /// often among the verified ones (`docs/decisions.md`, "Two pose networks"); the network
+    /// part of a registration takes twice as long. The one-pass methods use the main network
+    /// alone.
+    ///
+    /// Errors: [`PipelineError::Input`] when its head differs from the main network's.
+    pub fn with_second_pose(mut self, mut pose: LoadedPose) -> Result<Self> {
+        let (main, second) = (self.head(), pose.estimator.config().net.head);
+        if main != second {
+            return Err(PipelineError::input(format!(
+                "{}: the second pose model has a {} head, the main one {}",
+                pose.source,
+                second.as_str(),
+                main.as_str()
+            )));
+        }
+        pose.estimator.recovery.refine = Refine::None;
+        self.pose_second = Some(pose);
+        Ok(self)
+    }
+
+    /// Where the second pose network came from, when loaded ([`Pipeline::with_second_pose`]).
+    pub fn second_pose_source(&self) -> Option<&str> {
+        self.pose_second.as_ref().map(|p| p.source.as_str())
     }
 
     /// Runs `f` on the pipeline's threads (or the caller's pool).
@@ -1193,6 +1258,7 @@ impl Pipeline {
         let (m, n) = self.point_counts();
         serde_json::json!({
             "pose_model": self.pose.source,
+            "second_pose_model": self.second_pose_source(),
             "head": self.head().as_str(),
             "seg_model": self.seg_source(),
             "seg_one_object_model": self.seg_one_object_source(),
@@ -1408,7 +1474,12 @@ impl Pipeline {
         let frame = sensor_frame(depth_n);
         let mut out = Vec::new();
         let mut clouds: Vec<Vec<Vec3>> = Vec::new();
-        for inst in found.into_iter().filter(|i| i.score > post.score_threshold) {
+        // Instances standing out of the support planes are kept whatever the network's score:
+        // they are where the network saw no object.
+        for inst in found
+            .into_iter()
+            .filter(|i| i.score > post.score_threshold || i.off_support)
+        {
             let mask = post.refine(inst.mask, depth_n);
             let points = intrinsics.back_project_depth(depth_n, Some(&mask))?;
             if points.len() < 3 {
@@ -2013,7 +2084,14 @@ impl Pipeline {
             0 => self.point_counts(),
             m => (m, m * 3 / 4),
         };
-        let mut candidates: Vec<(f64, Pose, ic_pose::PoseEstimate)> = Vec::new();
+        // The pose networks: the main one, then the second one when loaded
+        // ([`Pipeline::with_second_pose`]); each makes, ranks and passes its own hypotheses.
+        let networks: Vec<&ic_pose::PoseEstimator> = std::iter::once(&self.pose)
+            .chain(self.pose_second.as_ref())
+            .map(|p| &p.estimator)
+            .collect();
+        let mut per_network: Vec<Vec<(f64, Pose, ic_pose::PoseEstimate)>> =
+            vec![Vec::new(); networks.len()];
         let mut first_draw = None;
         // The hypotheses are ranked by the point-distance confidence on a few of the voxels.
         let ranking: Vec<Vec3> = strided(&voxels, RANKING_POINTS).copied().collect();
@@ -2021,7 +2099,6 @@ impl Pipeline {
             let t = Instant::now();
             let (x, y, _) = draw_points(object, &voxels, (m, n), hypothesis_seed(seed, h))?;
             seconds.observed_points += t.elapsed().as_secs_f64();
-            let t = Instant::now();
             let sampled = self.options.sampled_hypotheses;
             let sweep = ic_pose::SweepOptions {
                 keep: match self.options.sweep_keep {
@@ -2034,64 +2111,80 @@ impl Pipeline {
                 }),
                 seed: ic_data::mix_seed(hypothesis_seed(seed, h), 0x5a3d),
             };
-            let estimates = self
-                .pose
-                .estimator
-                .estimate_rotations(&x, &rotations, &y, &sweep)?;
-            seconds.pose_network += t.elapsed().as_secs_f64();
-            first_draw.get_or_insert((x, y));
-            let t = Instant::now();
             let mut first_error = None;
-            for e in estimates {
-                // A copy whose correspondences admit no pose is one hypothesis fewer.
-                match e {
-                    Ok(c) => {
-                        let e = c.estimate;
-                        candidates.push((self.explained(object, &ranking, &e.pose), e.pose, e));
-                        for s in c.sampled {
-                            let e = ic_pose::PoseEstimate {
-                                pose: s.pose,
-                                inlier_count: s.inliers,
-                                ..e
-                            };
-                            candidates.push((self.explained(object, &ranking, &s.pose), s.pose, e));
+            for (estimator, candidates) in networks.iter().zip(per_network.iter_mut()) {
+                let t = Instant::now();
+                let estimates = estimator.estimate_rotations(&x, &rotations, &y, &sweep)?;
+                seconds.pose_network += t.elapsed().as_secs_f64();
+                let t = Instant::now();
+                for e in estimates {
+                    // A copy whose correspondences admit no pose is one hypothesis fewer.
+                    match e {
+                        Ok(c) => {
+                            let e = c.estimate;
+                            candidates.push((self.explained(object, &ranking, &e.pose), e.pose, e));
+                            for s in c.sampled {
+                                let e = ic_pose::PoseEstimate {
+                                    pose: s.pose,
+                                    inlier_count: s.inliers,
+                                    ..e
+                                };
+                                candidates.push((
+                                    self.explained(object, &ranking, &s.pose),
+                                    s.pose,
+                                    e,
+                                ));
+                            }
+                        }
+                        Err(err) => {
+                            tracing::debug!("a rotated copy gave no pose: {err}");
+                            first_error.get_or_insert(err);
                         }
                     }
-                    Err(err) => {
-                        tracing::debug!("a rotated copy gave no pose: {err}");
-                        first_error.get_or_insert(err);
-                    }
                 }
+                seconds.ranking += t.elapsed().as_secs_f64();
             }
-            seconds.ranking += t.elapsed().as_secs_f64();
-            if candidates.is_empty()
+            first_draw.get_or_insert((x, y));
+            if per_network.iter().all(|c| c.is_empty())
                 && let Some(err) = first_error
             {
                 return Err(err.into());
             }
         }
-        // The first draw's unrotated estimate (the paper's pipeline) is always verified; the
-        // others compete for the remaining places by the point-distance confidence.
-        let first = candidates.remove(0);
-        candidates.sort_by(|a, b| b.0.total_cmp(&a.0));
-        candidates.insert(0, first);
-        let mut top = self.options.verify_top.max(1).min(candidates.len());
-        if let Some((x, y)) = &first_draw {
-            let t = Instant::now();
-            let (mut from, mut to) = match self.options.pass_top {
-                0 => (0, top),
-                p => (0, p.min(top)),
-            };
-            for _ in 1..passes.max(1) {
-                let passed = self.network_pass(x, y, &candidates[from..to])?;
-                from = top;
-                to = top + passed.len();
-                top = to;
-                candidates.splice(from..from, passed);
+        // Each network's best `verify_top` go on to verification, the main network's first:
+        // its first draw's unrotated estimate (the paper's pipeline) is always verified; the
+        // others compete for the remaining places by the point-distance confidence; then the
+        // further passes of the same network over them.
+        let mut candidates: Vec<(f64, Pose, ic_pose::PoseEstimate)> = Vec::new();
+        let mut made = 0;
+        for (estimator, mut mine) in networks.iter().zip(per_network) {
+            if mine.is_empty() {
+                continue;
             }
-            seconds.pose_network += t.elapsed().as_secs_f64();
+            let first = mine.remove(0);
+            mine.sort_by(|a, b| b.0.total_cmp(&a.0));
+            mine.insert(0, first);
+            let mut top = self.options.verify_top.max(1).min(mine.len());
+            if let Some((x, y)) = &first_draw {
+                let t = Instant::now();
+                let (mut from, mut to) = match self.options.pass_top {
+                    0 => (0, top),
+                    p => (0, p.min(top)),
+                };
+                for _ in 1..passes.max(1) {
+                    let passed = self.network_pass(estimator, x, y, &mine[from..to])?;
+                    from = top;
+                    to = top + passed.len();
+                    top = to;
+                    mine.splice(from..from, passed);
+                }
+                seconds.pose_network += t.elapsed().as_secs_f64();
+            }
+            made += mine.len();
+            mine.truncate(top);
+            candidates.extend(mine);
         }
-        let made = candidates.len();
+        let top = candidates.len();
         let shape = match &object.mesh {
             Some(mesh) => ModelShape::Mesh(mesh.clone()),
             None => ModelShape::points(object.points.clone(), 0.5 * self.options.voxel_size),
@@ -2183,13 +2276,14 @@ impl Pipeline {
         Ok(r)
     }
 
-    /// One more pass of the network over `candidates`, in one batch: the model points `x`
+    /// One more pass of the network `estimator` over `candidates`, in one batch: the model points `x`
     /// (model frame) turned so that each candidate's rotation R̂ becomes the centre of the
     /// network's training rotations ([`ic_geometry::rotations::paper_view_rotation`]), against
     /// the observed points `y` (camera frame): one new hypothesis per candidate whose pass
     /// gives a pose, ranked like its candidate.
     fn network_pass(
         &self,
+        estimator: &ic_pose::PoseEstimator,
         x: &[Vec3],
         y: &[Vec3],
         candidates: &[(f64, Pose, ic_pose::PoseEstimate)],
@@ -2205,12 +2299,8 @@ impl Pipeline {
                 })
             })
             .collect();
-        let passes = self.pose.estimator.estimate_rotations(
-            x,
-            &turns,
-            y,
-            &ic_pose::SweepOptions::default(),
-        )?;
+        let passes =
+            estimator.estimate_rotations(x, &turns, y, &ic_pose::SweepOptions::default())?;
         Ok(passes
             .into_iter()
             .flatten()

@@ -100,9 +100,18 @@ pub struct NetworkArgs {
     /// Refinement after the one-shot estimate: icp or none.
     #[arg(long, default_value = "icp", value_parser = parse_refine)]
     pub refine: Refine,
-    /// A pose checkpoint instead of the shipped one.
+    /// A pose checkpoint instead of the shipped one; it is then the only pose network unless
+    /// --second-pose-model is given.
     #[arg(long)]
     pub pose_model: Option<PathBuf>,
+    /// A second pose checkpoint of the same head whose hypotheses join the main network's in
+    /// verification, instead of the shipped second network (softmax head only).
+    #[arg(long, conflicts_with = "no_second_pose")]
+    pub second_pose_model: Option<PathBuf>,
+    /// Verify the main pose network's hypotheses alone (faster; without it the shipped second
+    /// network's join them).
+    #[arg(long)]
+    pub no_second_pose: bool,
     /// A segmentation checkpoint instead of the shipped ones (it is then the only one: no
     /// one-object second opinion; e.g. models/seg-cpu.safetensors for one object per scene).
     #[arg(long)]
@@ -190,7 +199,11 @@ impl NetworkArgs {
             .sweep_keep(self.sweep_keep)
             .sampled_hypotheses(self.sampled_hypotheses)
             .network_passes(self.network_passes as usize)
-            .pass_top(self.pass_top);
+            .pass_top(self.pass_top)
+            .second_pose(!self.no_second_pose);
+        if let Some(path) = &self.second_pose_model {
+            b = b.second_pose_model(path);
+        }
         if let Some(head) = self.head {
             b = b.head(head);
         }
@@ -256,6 +269,7 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
     let optional_ins = [
         ("--mask", &args.mask),
         ("--pose-model", &args.networks.pose_model),
+        ("--second-pose-model", &args.networks.second_pose_model),
         ("--seg-model", &args.networks.seg_model),
     ];
     for (what, p) in &optional_ins {

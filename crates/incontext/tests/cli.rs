@@ -91,7 +91,8 @@ fn register_with_a_mask_finds_the_pose_and_writes_every_output() {
 
 #[test]
 fn the_real_object_weights_beside_the_default_load_and_find_the_pose() {
-    // models/pose-cpu-softmax-scratch.safetensors is not built in: `--pose-model` reads it.
+    // models/pose-cpu-softmax-scratch.safetensors, the default pipeline's second pose
+    // network, as the only one (`--pose-model`).
     let weights = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../../models/pose-cpu-softmax-scratch.safetensors");
     let sc = SmallScene::new();

@@ -348,32 +348,50 @@ fn lone_composite_scene() -> (incontext::Object, ic_geometry::DepthImage, Intrin
 fn a_lone_object_the_clutter_network_cuts_into_parts_is_registered_whole_by_the_one_object_network()
 {
     let (object, depth, intrinsics, truth) = lone_composite_scene();
-    // The clutter network alone cuts the object (a slab on four legs) into parts; the pose
-    // fitted to the best of them (about a third of the object) cannot be trusted.
-    let clutter_only = incontext::Pipeline::builder()
-        .seg_model(incontext::models::SEG.workspace_path())
-        .threads(2)
-        .build()
-        .unwrap();
-    assert!(clutter_only.seg_one_object_source().is_none());
-    let r = clutter_only
+    // The clutter network alone cuts the object (a slab on four legs) into parts; with one
+    // pose network, the pose fitted to the best of them (about a third of the object) cannot
+    // be trusted.
+    let clutter_only = |second_pose: bool| {
+        incontext::Pipeline::builder()
+            .seg_model(incontext::models::SEG.workspace_path())
+            .second_pose(second_pose)
+            .threads(2)
+            .build()
+            .unwrap()
+    };
+    let one_network = clutter_only(false);
+    assert!(one_network.seg_one_object_source().is_none());
+    assert!(one_network.second_pose_source().is_none());
+    let r = one_network
         .register_depth(&object, &depth, &intrinsics, None, 3)
         .unwrap();
     assert_ne!(r.verdict, incontext::Verdict::Ok, "{:?}", r.instance);
     assert!(r.instance.unwrap().size_ratio < 0.64, "{:?}", r.instance);
-    // The default pipeline asks the one-object network when nothing was `ok`: the whole
+    let right = |r: &incontext::Registration| {
+        r.pose.rotation_angle_to(&truth).to_degrees() < 2.0
+            && (r.pose.translation - truth.translation).length() < 5.0 // mm
+    };
+    // The pipeline with the one-object network asks it when nothing was `ok`: the whole
     // object, the right pose, trusted.
-    let default = incontext::Pipeline::builder().threads(2).build().unwrap();
-    assert!(default.seg_one_object_source().is_some());
-    let r = default
+    let default_one_network = incontext::Pipeline::builder()
+        .second_pose(false)
+        .threads(2)
+        .build()
+        .unwrap();
+    assert!(default_one_network.seg_one_object_source().is_some());
+    let r = default_one_network
         .register_depth(&object, &depth, &intrinsics, None, 3)
         .unwrap();
     assert_eq!(r.verdict, incontext::Verdict::Ok, "{:?}", r.instance);
     assert!(r.instance.unwrap().one_object_network, "{:?}", r.instance);
-    assert!(
-        r.pose.rotation_angle_to(&truth).to_degrees() < 2.0,
-        "{:?}",
-        r.pose
-    );
-    assert!((r.pose.translation - truth.translation).length() < 5.0); // mm
+    assert!(right(&r), "{:?}", r.pose);
+    // With the second pose network (the default) the part alone already gives the right pose
+    // of the whole object, trusted.
+    let two_networks = clutter_only(true);
+    assert!(two_networks.second_pose_source().is_some());
+    let r = two_networks
+        .register_depth(&object, &depth, &intrinsics, None, 3)
+        .unwrap();
+    assert_eq!(r.verdict, incontext::Verdict::Ok, "{:?}", r.instance);
+    assert!(right(&r), "{:?}", r.pose);
 }

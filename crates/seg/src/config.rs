@@ -130,6 +130,10 @@ pub struct PostConfig {
     /// Two-output networks: core probability above which a pixel seeds an instance.
     #[serde(default = "default_core_threshold")]
     pub core_threshold: f32,
+    /// [`crate::Segmenter::instances`] adds the pixel groups standing out of the scene's
+    /// dominant plane that no network instance holds ([`crate::support`]); `None`: off.
+    #[serde(default)]
+    pub support: Option<crate::SupportConfig>,
 }
 
 fn default_core_threshold() -> f32 {
@@ -145,6 +149,18 @@ fn default_depth_jump() -> f32 {
 }
 
 impl PostConfig {
+    /// Turns the support instances on at `height` (relative to the depth; 0: off), keeping
+    /// the other support settings (the defaults when off before) and setting the plane
+    /// threshold when given.
+    pub fn set_support(&mut self, height: f32, plane_threshold: Option<f32>) {
+        let base = self.support.clone().unwrap_or_default();
+        self.support = (height != 0.0).then(|| crate::SupportConfig {
+            height,
+            plane_threshold: plane_threshold.unwrap_or(base.plane_threshold),
+            ..base
+        });
+    }
+
     /// `min_pixels` (given for a 640×480 map) scaled to a `width`×`height` map's area.
     pub fn min_pixels_at(&self, width: u32, height: u32) -> usize {
         let area = (width as f64 * height as f64) / (640.0 * 480.0);
@@ -179,6 +195,7 @@ impl Default for PostConfig {
             erosions: 1,
             crop_radius: 1.2,
             core_threshold: 0.5,
+            support: None,
         }
     }
 }
@@ -337,6 +354,9 @@ impl SegConfig {
         }
         if !(p.crop_radius > 0.0 && p.crop_radius.is_finite()) {
             return Err(SegError::Config("crop_radius must be positive".into()));
+        }
+        if let Some(s) = &p.support {
+            s.validate()?;
         }
         let t = &self.train;
         if t.batch_size == 0

@@ -75,7 +75,7 @@ fn plane_from(a: DVec3, b: DVec3, c: DVec3) -> Option<(DVec3, f64)> {
 }
 
 /// Least-squares plane through `points` (smallest-eigenvalue direction of the covariance).
-fn refit(points: &[DVec3]) -> Option<(DVec3, f64)> {
+pub(crate) fn refit(points: &[DVec3]) -> Option<(DVec3, f64)> {
     if points.len() < 3 {
         return None;
     }

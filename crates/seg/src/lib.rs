@@ -53,6 +53,7 @@ pub mod infer;
 pub mod input;
 pub mod post;
 pub mod segmenter;
+pub mod support;
 pub mod train;
 pub mod unet;
 
@@ -60,4 +61,5 @@ pub use config::{PostConfig, SegConfig, SegInput, SegTrainConfig, UNetConfig};
 pub use error::{Result, SegError};
 pub use geometric::{GeometricConfig, GeometricSegmentation, segment_geometric};
 pub use segmenter::{Segmentation, Segmenter};
+pub use support::{SupportConfig, SupportPlane};
 pub use train::{SegExample, seg_loss};

@@ -15,6 +15,10 @@ pub struct Instance {
     /// Mean pixel probability over the component, in [0, 1].
     pub score: f32,
     pub pixels: usize,
+    /// Found by geometry rather than by the network: pixels standing out of the scene's
+    /// support planes that no network instance holds ([`crate::support`]); its `score` is
+    /// still the network's (low) mean probability.
+    pub off_support: bool,
 }
 
 /// The 8-connected components of `mask`, as lists of pixel indices, in the order of their
@@ -37,6 +41,33 @@ pub fn connected_components(mask: &Mask) -> Vec<Vec<usize>> {
         out.push(component);
     }
     out
+}
+
+/// Breadth-first growth over a `width`×`height` grid from the pixels in `queue`, through
+/// 4-neighbours: a step from pixel `from` to its neighbour `to` is taken when `admit(from, to)`
+/// says so (`admit` must also remember `to` as taken, so each pixel is admitted once). Nearer
+/// pixels are reached first, so when several groups grow at once each pixel goes to the
+/// nearest.
+pub(crate) fn grow4(
+    width: usize,
+    height: usize,
+    mut queue: std::collections::VecDeque<usize>,
+    mut admit: impl FnMut(usize, usize) -> bool,
+) {
+    while let Some(i) = queue.pop_front() {
+        let (x, y) = (i % width, i / width);
+        let neighbours = [
+            (x > 0).then(|| i - 1),
+            (x + 1 < width).then(|| i + 1),
+            (y > 0).then(|| i - width),
+            (y + 1 < height).then(|| i + width),
+        ];
+        for j in neighbours.into_iter().flatten() {
+            if admit(i, j) {
+                queue.push_back(j);
+            }
+        }
+    }
 }
 
 /// 8-connected flood fill over a `width`×`height` grid from `seeds`: a step from pixel `from`
@@ -95,7 +126,7 @@ pub fn instances(
 
 /// The pixel groups of at least `min_pixels` as instances scored by their mean probability,
 /// best first (ties: the larger first, then the earlier).
-fn ranked(
+pub(crate) fn ranked(
     groups: Vec<Vec<usize>>,
     prob: &[f32],
     width: u32,
@@ -115,6 +146,7 @@ fn ranked(
                 mask,
                 score,
                 pixels: c.len(),
+                off_support: false,
             }
         })
         .collect();
@@ -168,21 +200,13 @@ pub fn split_instances(
         }
         None => true,
     };
-    while let Some(i) = queue.pop_front() {
-        let (x, y) = (i % w, i / w);
-        let neighbours = [
-            (x > 0).then(|| i - 1),
-            (x + 1 < w).then(|| i + 1),
-            (y > 0).then(|| i - w),
-            (y + 1 < h).then(|| i + w),
-        ];
-        for j in neighbours.into_iter().flatten() {
-            if fg[j] && label[j] == NONE && continuous(i, j) {
-                label[j] = label[i];
-                queue.push_back(j);
-            }
+    grow4(w, h, queue, |i, j| {
+        let admit = fg[j] && label[j] == NONE && continuous(i, j);
+        if admit {
+            label[j] = label[i];
         }
-    }
+        admit
+    });
     let rest = Mask {
         width,
         height,

@@ -190,7 +190,7 @@ impl Segmenter {
         let object = self.full_resolution(&small, 0, depth);
         let post = &self.config.post;
         let min_pixels = post.min_pixels_at(depth.width, depth.height);
-        Ok(if self.config.net.outputs == 2 {
+        let mut found = if self.config.net.outputs == 2 {
             let core = self.full_resolution(&small, 1, depth);
             split_instances(
                 &object,
@@ -210,7 +210,41 @@ impl Segmenter {
                 post.pixel_threshold,
                 min_pixels,
             )
-        })
+        };
+        if let Some(cfg) = &post.support {
+            let planes = crate::support::support_planes(depth, intrinsics, cfg);
+            if !planes.is_empty() {
+                let mut free = crate::support::off_planes(depth, intrinsics, &planes, cfg);
+                let mut label = vec![u32::MAX; free.len()];
+                for (k, inst) in found.iter().enumerate() {
+                    for (i, &m) in inst.mask.data.iter().enumerate() {
+                        if m {
+                            label[i] = k as u32;
+                            free[i] = false;
+                        }
+                    }
+                }
+                if cfg.grow {
+                    crate::support::grow_into(&mut label, &mut free, depth, post.depth_jump);
+                    for (i, &l) in label.iter().enumerate() {
+                        if l != u32::MAX && !found[l as usize].mask.data[i] {
+                            found[l as usize].mask.data[i] = true;
+                            found[l as usize].pixels += 1;
+                        }
+                    }
+                }
+                let groups = crate::support::free_groups(&free, depth, post.depth_jump, min_pixels);
+                found.extend(
+                    crate::post::ranked(groups, &object, depth.width, depth.height, min_pixels)
+                        .into_iter()
+                        .map(|i| crate::post::Instance {
+                            off_support: true,
+                            ..i
+                        }),
+                );
+            }
+        }
+        Ok(found)
     }
 
     /// The observed object points of a segmentation, as the paper prepares them: the mask

@@ -312,9 +312,25 @@ pub struct EvalArgs {
     /// Override the pixel probability threshold.
     #[arg(long)]
     pub pixel_threshold: Option<f32>,
+    /// Override the instances standing out of the dominant plane (`ic_seg::support`): the
+    /// least height above it, relative to the depth (e.g. 0.015); 0 turns them off.
+    #[arg(long)]
+    pub support_height: Option<f32>,
+    /// With `--support-height`: the plane's inlier band, relative to the depth.
+    #[arg(long)]
+    pub support_plane_threshold: Option<f32>,
+    /// With `--support-height`: the network's instances first grow into the pixels off the
+    /// planes that they reach.
+    #[arg(long)]
+    pub support_grow: bool,
     /// Where to write the JSON (default `<model>.eval-<split>.json`).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Clutter scenes: write a PNG of each scene whose target was missed (at most 40) to this
+    /// folder, `miss-<scene>-<kind>.png`: the depth with the target's true pixels in red
+    /// beside the network's instances in colours with the target's outline in white.
+    #[arg(long)]
+    pub misses: Option<PathBuf>,
     #[arg(long)]
     pub threads: Option<usize>,
 }
@@ -617,6 +633,15 @@ pub fn scene_instances(
     s: &ClutterScene,
 ) -> Result<ic_eval::instances::InstanceMatch> {
     let found = seg.instances(&s.depth, &s.intrinsics)?;
+    match_scene(&found, s)
+}
+
+/// `found` (instance masks at the scene's resolution) against the true instances of `s`, as
+/// [`scene_instances`] scores them.
+fn match_scene(
+    found: &[ic_seg::post::Instance],
+    s: &ClutterScene,
+) -> Result<ic_eval::instances::InstanceMatch> {
     let area = (s.intrinsics.width as f64 * s.intrinsics.height as f64) / (640.0 * 480.0);
     let min = (MIN_TRUE_PIXELS_640 * area).round().max(1.0) as usize;
     let truth: Vec<Mask> = s
@@ -861,6 +886,13 @@ pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
     if let Some(t) = args.pixel_threshold {
         seg.config_mut().post.pixel_threshold = t;
     }
+    if let Some(height) = args.support_height {
+        let post = &mut seg.config_mut().post;
+        post.set_support(height, args.support_plane_threshold);
+        if let Some(s) = &mut post.support {
+            s.grow = args.support_grow;
+        }
+    }
     if scene_kind(&args.scenes)? == SceneKind::Clutter {
         return eval_clutter(args, &seg);
     }
@@ -934,6 +966,82 @@ pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
     Ok(report)
 }
 
+/// The most PNG sheets `eval-seg --misses` writes.
+const MAX_MISS_SHEETS: usize = 40;
+
+/// A sheet of one clutter scene (`eval-seg --misses`): left, the depth (near bright) with the
+/// target's true pixels (its first instance) tinted red; right, `found` in colours (a hash of
+/// the instance's rank) with the target's true outline in white.
+fn write_miss_sheet(path: &Path, s: &ClutterScene, found: &[ic_seg::post::Instance]) -> Result<()> {
+    let (w, h) = (s.depth.width as usize, s.depth.height as usize);
+    let target = s.mask(s.objects[0].instance_id);
+    let valid: Vec<f32> = s.depth.data.iter().copied().filter(|&z| z > 0.0).collect();
+    let (lo, hi) = valid
+        .iter()
+        .fold((f32::MAX, f32::MIN), |(a, b), &z| (a.min(z), b.max(z)));
+    let shade = |z: f32| -> u8 {
+        if z <= 0.0 || hi <= lo {
+            0
+        } else {
+            (40.0 + 215.0 * (hi - z) / (hi - lo)) as u8
+        }
+    };
+    let mut label = vec![usize::MAX; w * h];
+    for (k, inst) in found.iter().enumerate() {
+        for (i, &m) in inst.mask.data.iter().enumerate() {
+            if m {
+                label[i] = k;
+            }
+        }
+    }
+    let colour = |k: usize| -> [u8; 3] {
+        let x = (k as u32).wrapping_mul(2_654_435_761).rotate_left(7);
+        [
+            60 + (x & 0xff) as u8 % 196,
+            60 + ((x >> 8) & 0xff) as u8 % 196,
+            60 + ((x >> 16) & 0xff) as u8 % 196,
+        ]
+    };
+    let edge = |i: usize| {
+        let (x, y) = (i % w, i / w);
+        target.data[i]
+            && [
+                (x > 0).then(|| i - 1),
+                (x + 1 < w).then(|| i + 1),
+                (y > 0).then(|| i - w),
+                (y + 1 < h).then(|| i + w),
+            ]
+            .into_iter()
+            .any(|j| j.is_none_or(|j| !target.data[j]))
+    };
+    let mut rgb = vec![0u8; 2 * w * h * 3];
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let g = shade(s.depth.data[i]);
+            let left = if target.data[i] {
+                [g.max(120), g / 3, g / 3]
+            } else {
+                [g, g, g]
+            };
+            let right = if edge(i) {
+                [255, 255, 255]
+            } else if label[i] != usize::MAX {
+                colour(label[i])
+            } else {
+                [g / 3, g / 3, g / 3]
+            };
+            let l = (y * 2 * w + x) * 3;
+            rgb[l..l + 3].copy_from_slice(&left);
+            let r = (y * 2 * w + w + x) * 3;
+            rgb[r..r + 3].copy_from_slice(&right);
+        }
+    }
+    ic_render::write_rgb_png(path, (2 * w) as u32, h as u32, &rgb)
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(())
+}
+
 /// `eval-seg --scenes clutter`: every instance of `args.count` cluttered scenes (640×480,
 /// seed `args.seed`, objects of `args.split`).
 fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
@@ -955,6 +1063,7 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     let bar = ProgressBar::new(args.count);
     let mut matches = Vec::new();
     let mut seconds = Vec::new();
+    let mut drawn = 0;
     let mut rows = String::from(
         "scene,support,objects,target_copies,target_object,target_size_m,target_depth_m,\
          target_visible_px,target_best_iou,target_best_cover,target_covered,\
@@ -963,9 +1072,19 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     for (i, s) in scenes.enumerate() {
         let s = s?;
         let t = Instant::now();
-        let m = scene_instances(seg, &s)?;
+        let found = seg.instances(&s.depth, &s.intrinsics)?;
+        let m = match_scene(&found, &s)?;
         seconds.push(t.elapsed().as_secs_f64());
         let target = &s.objects[0];
+        if let (Some(dir), Some(kind)) = (&args.misses, ic_eval::instances::TargetMisses::kind(&m))
+            && drawn < MAX_MISS_SHEETS
+        {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("cannot create {}", dir.display()))?;
+            let path = dir.join(format!("miss-{:04}-{kind}.png", s.index));
+            write_miss_sheet(&path, &s, &found)?;
+            drawn += 1;
+        }
         rows.push_str(&format!(
             "{},{},{},{},{},{:.3},{:.3},{},{:.4},{:.4},{:.4},{:.4},{},{}\n",
             s.index,
