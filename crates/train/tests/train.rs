@@ -466,6 +466,64 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
     };
     let err = ic_train::seg::train(&wrong, control(never())).unwrap_err();
     assert!(format!("{err:#}").contains("two-output"), "{err:#}");
+    // `eval-seg --scenes clutter` scores it, one CSV row per scene, and draws a sheet of
+    // each scene whose target it missed; the support instances only add instances.
+    let eval = |support_height: Option<f32>, name: &str| {
+        let report_path = dir.path().join(format!("{name}.json"));
+        let misses = dir.path().join(format!("{name}-misses"));
+        let args = ic_train::seg::EvalArgs {
+            model: out.join("final.safetensors"),
+            scenes: "clutter".into(),
+            objects: "procedural@4:1".into(),
+            split: "test".into(),
+            count: 3,
+            seed: 5,
+            geometric: false,
+            depth_refine_px: None,
+            pixel_threshold: None,
+            support_height,
+            support_plane_threshold: None,
+            support_grow: false,
+            out: Some(report_path.clone()),
+            misses: Some(misses.clone()),
+            threads: None,
+        };
+        let report = ic_train::seg::eval(&args).unwrap();
+        let csv = std::fs::read_to_string(report_path.with_extension("csv")).unwrap();
+        let missed: Vec<String> = csv
+            .lines()
+            .skip(1)
+            .filter_map(|row| {
+                let cols: Vec<&str> = row.split(',').collect();
+                let kind = cols[cols.len() - 2];
+                (!kind.is_empty())
+                    .then(|| format!("miss-{:04}-{kind}.png", cols[0].parse::<u32>().unwrap()))
+            })
+            .collect();
+        let mut drawn: Vec<String> = std::fs::read_dir(&misses)
+            .map(|d| {
+                d.map(|e| e.unwrap().file_name().into_string().unwrap())
+                    .collect()
+            })
+            .unwrap_or_default();
+        drawn.sort();
+        assert_eq!(drawn, missed, "one sheet per missed target");
+        for name in &drawn {
+            let png = std::fs::read(misses.join(name)).unwrap();
+            let size = |at: usize| u32::from_be_bytes(png[at..at + 4].try_into().unwrap());
+            assert_eq!(
+                (size(16), size(20)),
+                (2 * 640, 480),
+                "{name}: depth beside instances"
+            );
+        }
+        report["instances"]["predictions_per_image"]
+            .as_f64()
+            .unwrap()
+    };
+    let plain = eval(None, "plain");
+    let with_support = eval(Some(0.01), "support");
+    assert!(with_support >= plain, "{with_support} < {plain}");
 }
 
 #[test]
