@@ -182,25 +182,24 @@ pub fn load_pose(path: Option<&Path>, head: Option<Head>) -> Result<LoadedPose> 
     load_pose_from(path, &shipped, head, "pose model", "--pose-model")
 }
 
-/// The shipped second pose network of `head` ([`POSE_SOFTMAX_SECOND`] for softmax, none for
-/// OT), or `None` when there is none or this build has it neither embedded nor in the
-/// workspace.
-pub fn load_pose_second(head: Head) -> Result<Option<LoadedPose>> {
-    let shipped = match head {
-        Head::Softmax => POSE_SOFTMAX_SECOND,
-        Head::Ot => return Ok(None),
+/// The second pose network ([`crate::Pipeline::with_second_pose`]): `path`, or the shipped one
+/// of `head` ([`POSE_SOFTMAX_SECOND`] for softmax, none for OT); `None` when there is none or
+/// this build has it neither embedded nor in the workspace. Its head must be `head`.
+pub fn load_pose_second(path: Option<&Path>, head: Head) -> Result<Option<LoadedPose>> {
+    let load = |path| {
+        load_pose_from(
+            path,
+            &POSE_SOFTMAX_SECOND,
+            Some(head),
+            "second pose model",
+            "--second-pose-model",
+        )
     };
-    if !shipped.available() {
-        return Ok(None);
+    match (path, head) {
+        (Some(p), _) => load(Some(p)).map(Some),
+        (None, Head::Softmax) if POSE_SOFTMAX_SECOND.available() => load(None).map(Some),
+        (None, _) => Ok(None),
     }
-    load_pose_from(
-        None,
-        &shipped,
-        Some(head),
-        "second pose model",
-        "--second-pose-model",
-    )
-    .map(Some)
 }
 
 /// Loads `path`, or `shipped` when `path` is `None` (`what` and `flag` name it in errors);

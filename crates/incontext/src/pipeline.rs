@@ -1127,10 +1127,8 @@ impl PipelineBuilder {
         };
         let head = pose.estimator.config().net.head;
         let second = match (self.second_pose, &self.second_pose_model, &self.pose_model) {
-            (false, _, _) => None,
-            (true, Some(path), _) => Some(crate::models::load_pose(Some(path), Some(head))?),
-            (true, None, None) => crate::models::load_pose_second(head)?,
-            (true, None, Some(_)) => None,
+            (false, _, _) | (true, None, Some(_)) => None,
+            (true, path, _) => crate::models::load_pose_second(path.as_deref(), head)?,
         };
         let mut pipeline = Pipeline::new(pose, seg, self.options);
         if let Some(second) = second {
