@@ -925,7 +925,8 @@ pub struct Pipeline {
 }
 
 /// How to load a [`Pipeline`]: which networks, which settings. The defaults are those of
-/// `incontext register`: the shipped softmax pose network, the shipped clutter segmentation
+/// `incontext register`: the shipped softmax pose network with its second
+/// ([`Pipeline::with_second_pose`]), the shipped clutter segmentation
 /// network with the one-object network as its second opinion ([`Pipeline::with_one_object_seg`]), ICP,
 /// [`DEFAULT_ROTATIONS`] rotation hypotheses verified by render-and-compare (the best 8), one
 /// hypothesis per copy, the global thread pool.
