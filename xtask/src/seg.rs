@@ -100,12 +100,10 @@ pub fn set_post(args: PostArgs) -> Result<()> {
         cfg.net.input_height = v;
     }
     if let Some(height) = args.support_height {
-        cfg.post.set_support(height, args.support_plane_threshold);
+        cfg.post
+            .set_support(height, args.support_plane_threshold, args.support_grow);
     } else if args.support_plane_threshold.is_some() || args.support_grow.is_some() {
         anyhow::bail!("--support-plane-threshold and --support-grow need --support-height");
-    }
-    if let (Some(s), Some(grow)) = (&mut cfg.post.support, args.support_grow) {
-        s.grow = grow;
     }
     cfg.validate()?;
     // Only the network's tensors: a training checkpoint's Adam moments are left behind.

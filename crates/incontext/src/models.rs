@@ -182,15 +182,16 @@ pub fn load_pose(path: Option<&Path>, head: Option<Head>) -> Result<LoadedPose> 
     load_pose_from(path, &shipped, head, "pose model", "--pose-model")
 }
 
-/// The second pose network ([`crate::Pipeline::with_second_pose`]): `path`, or the shipped one
-/// of `head` ([`POSE_SOFTMAX_SECOND`] for softmax, none for OT); `None` when there is none or
-/// this build has it neither embedded nor in the workspace. Its head must be `head`.
+/// The second pose network ([`crate::Pipeline::with_second_pose`], which checks that its head
+/// is the main network's): `path`, or the shipped one of `head` ([`POSE_SOFTMAX_SECOND`] for
+/// softmax, none for OT); `None` when there is none or this build has it neither embedded nor
+/// in the workspace.
 pub fn load_pose_second(path: Option<&Path>, head: Head) -> Result<Option<LoadedPose>> {
     let load = |path| {
         load_pose_from(
             path,
             &POSE_SOFTMAX_SECOND,
-            Some(head),
+            None,
             "second pose model",
             "--second-pose-model",
         )

@@ -130,8 +130,8 @@ pub struct PostConfig {
     /// Two-output networks: core probability above which a pixel seeds an instance.
     #[serde(default = "default_core_threshold")]
     pub core_threshold: f32,
-    /// [`crate::Segmenter::instances`] adds the pixel groups standing out of the scene's
-    /// dominant plane that no network instance holds ([`crate::support`]); `None`: off.
+    /// [`crate::Segmenter::instances`] adds the pixel groups off the scene's support planes
+    /// that no network instance holds ([`crate::support`]); `None`: off.
     #[serde(default)]
     pub support: Option<crate::SupportConfig>,
 }
@@ -151,12 +151,13 @@ fn default_depth_jump() -> f32 {
 impl PostConfig {
     /// Turns the support instances on at `height` (relative to the depth; 0: off), keeping
     /// the other support settings (the defaults when off before) and setting the plane
-    /// threshold when given.
-    pub fn set_support(&mut self, height: f32, plane_threshold: Option<f32>) {
+    /// threshold and the growth of the network's instances when given.
+    pub fn set_support(&mut self, height: f32, plane_threshold: Option<f32>, grow: Option<bool>) {
         let base = self.support.clone().unwrap_or_default();
         self.support = (height != 0.0).then(|| crate::SupportConfig {
             height,
             plane_threshold: plane_threshold.unwrap_or(base.plane_threshold),
+            grow: grow.unwrap_or(base.grow),
             ..base
         });
     }

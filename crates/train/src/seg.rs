@@ -312,11 +312,11 @@ pub struct EvalArgs {
     /// Override the pixel probability threshold.
     #[arg(long)]
     pub pixel_threshold: Option<f32>,
-    /// Override the instances standing out of the dominant plane (`ic_seg::support`): the
-    /// least height above it, relative to the depth (e.g. 0.015); 0 turns them off.
+    /// Override the instances standing out of the scene's support planes (`ic_seg::support`):
+    /// the least height above a plane, relative to the depth (e.g. 0.01); 0 turns them off.
     #[arg(long)]
     pub support_height: Option<f32>,
-    /// With `--support-height`: the plane's inlier band, relative to the depth.
+    /// With `--support-height`: the planes' narrowest inlier band, relative to the depth.
     #[arg(long)]
     pub support_plane_threshold: Option<f32>,
     /// With `--support-height`: the network's instances first grow into the pixels off the
@@ -887,11 +887,11 @@ pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
         seg.config_mut().post.pixel_threshold = t;
     }
     if let Some(height) = args.support_height {
-        let post = &mut seg.config_mut().post;
-        post.set_support(height, args.support_plane_threshold);
-        if let Some(s) = &mut post.support {
-            s.grow = args.support_grow;
-        }
+        seg.config_mut().post.set_support(
+            height,
+            args.support_plane_threshold,
+            Some(args.support_grow),
+        );
     }
     if scene_kind(&args.scenes)? == SceneKind::Clutter {
         return eval_clutter(args, &seg);
@@ -1002,18 +1002,6 @@ fn write_miss_sheet(path: &Path, s: &ClutterScene, found: &[ic_seg::post::Instan
             60 + ((x >> 16) & 0xff) as u8 % 196,
         ]
     };
-    let edge = |i: usize| {
-        let (x, y) = (i % w, i / w);
-        target.data[i]
-            && [
-                (x > 0).then(|| i - 1),
-                (x + 1 < w).then(|| i + 1),
-                (y > 0).then(|| i - w),
-                (y + 1 < h).then(|| i + w),
-            ]
-            .into_iter()
-            .any(|j| j.is_none_or(|j| !target.data[j]))
-    };
     let mut rgb = vec![0u8; 2 * w * h * 3];
     for y in 0..h {
         for x in 0..w {
@@ -1024,7 +1012,7 @@ fn write_miss_sheet(path: &Path, s: &ClutterScene, found: &[ic_seg::post::Instan
             } else {
                 [g, g, g]
             };
-            let right = if edge(i) {
+            let right = if ic_render::is_mask_edge(&target, x, y) {
                 [255, 255, 255]
             } else if label[i] != usize::MAX {
                 colour(label[i])
