@@ -1,4 +1,4 @@
-//! Serde configurations with named presets (`cpu`, `tiny`).
+//! Serde configurations with named presets (`cpu`, `clutter`, `clutter-wide`, `tiny`).
 
 use serde::{Deserialize, Serialize};
 
@@ -297,6 +297,20 @@ impl SegConfig {
         }
     }
 
+    /// The `clutter` preset with wider channels, 8-24-64-256 (≈ 4× the parameters, ≈ 1.7×
+    /// a training step's time on 2 threads), chosen because the `clutter` network
+    /// underfits: on clutter scenes of its own training objects it finds the target no more
+    /// often than on unseen ones (`docs/decisions.md`, "A wider clutter network"). Level 0
+    /// (full resolution, most of the arithmetic) keeps 8 channels; the coarser levels, which
+    /// see whole objects, get the width. Its training starts from `clutter` weights widened
+    /// without changing what they compute (`ic_train::widen`).
+    pub fn clutter_wide() -> Self {
+        let mut c = Self::clutter();
+        c.preset = "clutter-wide".into();
+        c.net.channels = vec![8, 24, 64, 256];
+        c
+    }
+
     /// A very small network for tests.
     pub fn tiny() -> Self {
         SegConfig {
@@ -329,6 +343,7 @@ impl SegConfig {
         match name {
             "cpu" => Ok(Self::cpu()),
             "clutter" => Ok(Self::clutter()),
+            "clutter-wide" => Ok(Self::clutter_wide()),
             "tiny" => Ok(Self::tiny()),
             "tiny-clutter" => {
                 let mut c = Self::tiny();
@@ -336,8 +351,15 @@ impl SegConfig {
                 c.net.outputs = 2;
                 Ok(c)
             }
+            "tiny-clutter-wide" => {
+                let mut c = Self::tiny();
+                c.preset = "tiny-clutter-wide".into();
+                c.net.outputs = 2;
+                c.net.channels = vec![6, 12];
+                Ok(c)
+            }
             other => Err(SegError::Config(format!(
-                "unknown preset {other:?} (cpu | clutter | tiny | tiny-clutter)"
+                "unknown preset {other:?} (cpu | clutter | clutter-wide | tiny | tiny-clutter | tiny-clutter-wide)"
             ))),
         }
     }

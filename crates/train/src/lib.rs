@@ -23,6 +23,7 @@
 mod objects;
 pub mod pose;
 pub mod seg;
+pub mod widen;
 
 use std::collections::HashMap;
 use std::io::Write;

@@ -79,9 +79,11 @@ pub struct SegStepStats {
 }
 
 impl Trainer<UNet> {
-    /// Starts this network from a checkpoint of the same channels that has fewer outputs
-    /// (one, where this one has two) or fewer inputs (depth alone, where this one also sees
-    /// surface normals), or both (the input size may differ: the network is fully
+    /// Starts this network from a checkpoint with as many levels and at most as many channels
+    /// per level ([`crate::widen`]: the copies of a channel share its weights, so the
+    /// widened network computes what the checkpoint did), fewer outputs (one, where this one
+    /// has two) or fewer inputs (depth alone, where this one also sees surface normals), or
+    /// any of these together (the input size may differ: the network is fully
     /// convolutional). Every weight is copied; the head's object output goes into both
     /// outputs (the core map starts as the object map); the first convolution's weights of
     /// the new input channels start at zero, so the widened network computes what the
@@ -96,7 +98,9 @@ impl Trainer<UNet> {
         let (from, to) = (&config.net, &self.config.net);
         let widen_head = (from.outputs, to.outputs) == (1, 2);
         let (cin_from, cin_to) = (from.input.channels(), to.input.channels());
-        if from.channels != to.channels
+        let wider = from.channels.len() == to.channels.len()
+            && from.channels.iter().zip(&to.channels).all(|(f, t)| f <= t);
+        if !wider
             || !(widen_head || from.outputs == to.outputs)
             || !(from.input == to.input
                 || (from.input, to.input) == (SegInput::Depth, SegInput::DepthNormals))
@@ -106,13 +110,31 @@ impl Trainer<UNet> {
                 from.channels, from.outputs, from.input, to.channels, to.outputs, to.input
             )));
         }
-        let tensors =
+        let mut tensors =
             ic_nn::checkpoint::load_tensors(path, self.device()).map_err(|e| bad(e.to_string()))?;
         let data = self
             .varmap()
             .data()
             .lock()
             .unwrap_or_else(|e| e.into_inner());
+        if from.channels != to.channels {
+            let names: Vec<String> = data.keys().cloned().collect();
+            tensors = crate::widen::widen_unet(
+                &tensors,
+                &names,
+                &from.channels,
+                &to.channels,
+                crate::widen::NOISE,
+                self.seed(),
+            )
+            .map_err(bad)?;
+            tracing::info!(
+                "channels {:?} widened into {:?} (Net2WiderNet, noise from seed {})",
+                from.channels,
+                to.channels,
+                self.seed()
+            );
+        }
         for (name, var) in data.iter() {
             let t = tensors
                 .get(name)
@@ -217,7 +239,8 @@ impl Trainer<UNet> {
 
 #[derive(clap::Args)]
 pub struct TrainArgs {
-    /// `cpu`, `clutter` (with `--scenes clutter`) or `tiny` / `tiny-clutter` (smoke tests).
+    /// `cpu`, `clutter` or `clutter-wide` (with `--scenes clutter`), or `tiny` /
+    /// `tiny-clutter` / `tiny-clutter-wide` (smoke tests).
     #[arg(long, default_value = "cpu")]
     pub preset: String,
     /// `room` (the paper's: one object in the cube room; `--objects` is a folder of meshes
@@ -235,8 +258,10 @@ pub struct TrainArgs {
     #[arg(long)]
     pub objects: PathBuf,
     /// Start from these weights (fresh optimiser, iteration 0): a checkpoint of the same
-    /// network, or a one-output one of the same channels for a two-output preset (its head
-    /// is widened: e.g. `--preset clutter --init models/seg-cpu.safetensors`). Ignored when
+    /// network, a one-output one of the same channels for a two-output preset (its head
+    /// is widened: e.g. `--preset clutter --init models/seg-cpu.safetensors`), or one of
+    /// narrower channels for a wider preset (function-preserving, `ic_train::widen`: e.g.
+    /// `--preset clutter-wide --init models/seg-clutter.safetensors`). Ignored when
     /// `--resume` finds a checkpoint.
     #[arg(long)]
     pub init: Option<PathBuf>,
@@ -439,16 +464,28 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
     if args.resume {
         tracing::info!("--resume: no {} yet, starting fresh", latest.display());
     }
-    // A one-output init for a two-output preset, or a depth-only init for `--input
-    // depth-normals`: the preset's configuration (with the asked input), the init's weights
+    // A one-output init for a two-output preset, a depth-only init for `--input
+    // depth-normals`, or a narrower init for a preset of wider channels (`clutter-wide` from
+    // `clutter`): the preset's configuration (with the asked input), the init's weights
     // widened.
     let input: Option<SegInput> = args.input.as_deref().map(str::parse).transpose()?;
     let init_config = init
         .map(|p| ic_seg::checkpoint::read_config(p).with_context(|| format!("{}", p.display())))
         .transpose()?;
     let preset = SegConfig::preset(&args.preset)?;
+    let wider_preset = |c: &SegConfig| {
+        c.net.channels != preset.net.channels
+            && c.net.channels.len() == preset.net.channels.len()
+            && c.net
+                .channels
+                .iter()
+                .zip(&preset.net.channels)
+                .all(|(a, b)| a <= b)
+    };
     let widen = init_config.as_ref().is_some_and(|c| {
-        (c.net.outputs == 1 && preset.net.outputs == 2) || input.is_some_and(|i| i != c.net.input)
+        (c.net.outputs == 1 && preset.net.outputs == 2)
+            || input.is_some_and(|i| i != c.net.input)
+            || wider_preset(c)
     });
     let mut cfg = match init_config {
         Some(c) if !widen => c,

@@ -771,3 +771,86 @@ fn averaged_weights_are_the_element_wise_mean_and_one_file_averages_to_itself() 
     assert!(ic_train::average_weights(&[], &refused).is_err());
     assert!(!refused.exists());
 }
+
+#[test]
+fn a_narrower_checkpoint_starts_a_wider_network_that_computes_the_same() {
+    let dir = tempfile::tempdir().unwrap();
+    let narrow_run = dir.path().join("narrow");
+    let narrow_args = ic_train::seg::TrainArgs {
+        preset: "tiny-clutter".into(),
+        scenes: "clutter".into(),
+        objects: "procedural@4:1".into(),
+        ..seg_args(&narrow_run, 2, false)
+    };
+    ic_train::seg::train(&narrow_args, control(never())).unwrap();
+    let init = narrow_run.join("final.safetensors");
+    let (w, h) = (64u32, 48u32);
+    let k = ic_geometry::Intrinsics::new(60.0, 60.0, 31.5, 23.5, w, h).unwrap();
+    let mut depth = ic_geometry::DepthImage::filled(w, h, 0.0);
+    for v in 0..h {
+        for u in 0..w {
+            let box_ = (20..40).contains(&u) && (10..30).contains(&v);
+            depth.data[(v * w + u) as usize] = if box_ { 2.0 } else { 3.0 + 0.02 * v as f32 };
+        }
+    }
+    let p = |s: &ic_seg::Segmenter| s.probabilities_small(&[(&depth, &k)]).unwrap().remove(0);
+    let before = p(&ic_seg::Segmenter::load(&init).unwrap());
+
+    // Exact without noise: every copy shares its channel's weights.
+    let narrow = ic_seg::checkpoint::read_config(&init).unwrap();
+    let mut wide = ic_seg::SegConfig::preset("tiny-clutter-wide").unwrap();
+    wide.net.input_width = narrow.net.input_width;
+    wide.net.input_height = narrow.net.input_height;
+    let tensors = candle_core::safetensors::load(&init, &candle_core::Device::Cpu).unwrap();
+    let varmap = candle_nn::VarMap::new();
+    let vb = candle_nn::VarBuilder::from_varmap(
+        &varmap,
+        candle_core::DType::F32,
+        &candle_core::Device::Cpu,
+    );
+    let _ = ic_seg::unet::UNet::new(vb, &wide.net).unwrap();
+    let names: Vec<String> = varmap.data().lock().unwrap().keys().cloned().collect();
+    let widened = ic_train::widen::widen_unet(
+        &tensors,
+        &names,
+        &narrow.net.channels,
+        &wide.net.channels,
+        0.0,
+        7,
+    )
+    .unwrap();
+    let vb = candle_nn::VarBuilder::from_tensors(
+        widened,
+        candle_core::DType::F32,
+        &candle_core::Device::Cpu,
+    );
+    let net = ic_seg::unet::UNet::new(vb, &wide.net).unwrap();
+    let exact = p(&ic_seg::Segmenter::from_parts(net, wide.clone()));
+    assert_eq!(before.len(), exact.len());
+    for (x, y) in before.iter().zip(&exact) {
+        assert!((x - y).abs() < 1e-5, "{x} vs {y}");
+    }
+
+    // The training path: the wider preset from the narrower checkpoint, with the noise that
+    // lets the copies part; the outputs stay close.
+    let args = ic_train::seg::TrainArgs {
+        preset: "tiny-clutter-wide".into(),
+        ..narrow_args
+    };
+    let t = ic_train::seg::make_trainer(&args, &dir.path().join("none"), Some(&init)).unwrap();
+    assert_eq!(t.config().net.channels, vec![6, 12]);
+    let after = p(&t.segmenter());
+    let worst = before
+        .iter()
+        .zip(&after)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst > 0.0 && worst < 0.05, "largest change {worst}");
+
+    // A wider checkpoint does not start a narrower network.
+    let wide_file = dir.path().join("wide.safetensors");
+    t.save_weights(&wide_file).unwrap();
+    let mut narrow_trainer = ic_train::SegTrainer::new(narrow.clone(), 1).unwrap();
+    let err = narrow_trainer.load_widening(&wide_file).unwrap_err();
+    assert!(err.to_string().contains("wide.safetensors"), "{err}");
+}

@@ -149,6 +149,9 @@ impl Report {
             .map_or(0, |d| d.as_secs());
         let models = [
             pose_model("softmax"),
+            // The default pipeline's second pose network, whose hypotheses `register` verifies
+            // beside the main one's.
+            pose_model("softmax-scratch"),
             pose_model("ot"),
             PathBuf::from(SEG_MODEL),
             PathBuf::from(crate::bench::scenes::CLUTTER_SEG_MODEL),
