@@ -396,6 +396,16 @@ fn seg_args(out: &Path, iterations: u64, resume: bool) -> ic_train::seg::TrainAr
     }
 }
 
+/// [`seg_args`] of a tiny two-output network on clutter scenes of four procedural objects.
+fn clutter_args(out: &Path, iterations: u64) -> ic_train::seg::TrainArgs {
+    ic_train::seg::TrainArgs {
+        preset: "tiny-clutter".into(),
+        scenes: "clutter".into(),
+        objects: "procedural@4:1".into(),
+        ..seg_args(out, iterations, false)
+    }
+}
+
 fn seg_run(out: &Path, iterations: u64, resume: bool) -> ic_train::Outcome {
     let corpus = |split| {
         let options = CorpusOptions {
@@ -441,13 +451,7 @@ fn a_resumed_segmentation_run_matches_an_uninterrupted_one() {
 fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("clutter");
-    let args = ic_train::seg::TrainArgs {
-        preset: "tiny-clutter".into(),
-        scenes: "clutter".into(),
-        room_fraction: 0.0,
-        objects: "procedural@4:1".into(),
-        ..seg_args(&out, 2, false)
-    };
+    let args = clutter_args(&out, 2);
     let o = ic_train::seg::train(&args, control(never())).unwrap();
     assert_eq!((o.ending, o.iteration), (Ending::Finished, 2));
     let header = std::fs::read_to_string(out.join("val.csv")).unwrap();
@@ -543,11 +547,8 @@ fn a_clutter_run_mixes_in_room_scenes_in_the_fraction_asked() {
     // A mixed run trains; the fraction must be one and only go with clutter scenes.
     let dir = tempfile::tempdir().unwrap();
     let args = ic_train::seg::TrainArgs {
-        preset: "tiny-clutter".into(),
-        scenes: "clutter".into(),
         room_fraction: 0.5,
-        objects: "procedural@4:1".into(),
-        ..seg_args(&dir.path().join("mixed"), 2, false)
+        ..clutter_args(&dir.path().join("mixed"), 2)
     };
     let o = ic_train::seg::train(&args, control(never())).unwrap();
     assert_eq!((o.ending, o.iteration), (Ending::Finished, 2));
@@ -776,12 +777,7 @@ fn averaged_weights_are_the_element_wise_mean_and_one_file_averages_to_itself() 
 fn a_narrower_checkpoint_starts_a_wider_network_that_computes_the_same() {
     let dir = tempfile::tempdir().unwrap();
     let narrow_run = dir.path().join("narrow");
-    let narrow_args = ic_train::seg::TrainArgs {
-        preset: "tiny-clutter".into(),
-        scenes: "clutter".into(),
-        objects: "procedural@4:1".into(),
-        ..seg_args(&narrow_run, 2, false)
-    };
+    let narrow_args = clutter_args(&narrow_run, 2);
     ic_train::seg::train(&narrow_args, control(never())).unwrap();
     let init = narrow_run.join("final.safetensors");
     let (w, h) = (64u32, 48u32);

@@ -303,13 +303,17 @@ pub fn write_atomic_with<E>(
         name.push(file_name);
         name.push(format!(".{}.{n}.tmp", std::process::id()));
         let tmp = dir.join(name);
+        // The temporary file is created and recorded under one lock: a signal handler that
+        // abandons the pending writes either runs first (and holds the lock until the process
+        // exits, so no file is created) or sees this one.
+        let mut lock = pending();
         match std::fs::OpenOptions::new()
             .write(true)
             .create_new(true)
             .open(&tmp)
         {
             Ok(f) => {
-                pending().push(tmp.clone());
+                lock.push(tmp.clone());
                 break (f, tmp);
             }
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
