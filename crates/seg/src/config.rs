@@ -298,9 +298,10 @@ impl SegConfig {
     }
 
     /// The `clutter` preset with wider channels, 8-24-64-256 (≈ 4× the parameters, ≈ 1.7×
-    /// a training step's time on 2 threads), chosen because the `clutter` network
-    /// underfits: on clutter scenes of its own training objects it finds the target no more
-    /// often than on unseen ones (`docs/decisions.md`, "A wider clutter network"). Level 0
+    /// a training step's time on 2 threads), to test whether the `clutter` network lacks
+    /// capacity: on clutter scenes of its own training objects it finds the target no more
+    /// often than on unseen ones. Measured, not shipped: trained from the `clutter` weights it
+    /// found the target no more often (`docs/decisions.md`, "A wider clutter network"). Level 0
     /// (full resolution, most of the arithmetic) keeps 8 channels; the coarser levels, which
     /// see whole objects, get the width. Its training starts from `clutter` weights widened
     /// without changing what they compute (`ic_train::widen`).
