@@ -67,6 +67,21 @@ pub struct PostArgs {
     /// off the planes that they reach (`true` / `false`).
     #[arg(long)]
     support_grow: Option<bool>,
+    /// Four-output networks: cut a seed whose pixels' centre votes form two groups farther
+    /// apart than this × their spread (`ic_seg::centres`; 0: never). Turns the centre votes
+    /// on (with the defaults for what is not given).
+    #[arg(long)]
+    centre_split: Option<f32>,
+    /// Four-output networks: join touching instances whose mean votes lie closer than this ×
+    /// their spread (0: never). Turns the centre votes on.
+    #[arg(long)]
+    centre_merge: Option<f32>,
+    /// Four-output networks: the least share of a seed's pixels in each part of a cut.
+    #[arg(long)]
+    centre_min_share: Option<f32>,
+    /// Four-output networks: ignore the centre offsets (the instances of the cores alone).
+    #[arg(long, conflicts_with_all = ["centre_split", "centre_merge", "centre_min_share"])]
+    no_centres: bool,
 }
 
 /// `cargo xtask seg-post`: writes the weights of `--model` with new post-processing settings
@@ -104,6 +119,30 @@ pub fn set_post(args: PostArgs) -> Result<()> {
             .set_support(height, args.support_plane_threshold, args.support_grow);
     } else if args.support_plane_threshold.is_some() || args.support_grow.is_some() {
         anyhow::bail!("--support-plane-threshold and --support-grow need --support-height");
+    }
+    if args.no_centres {
+        cfg.post.centres = None;
+    } else if args.centre_split.is_some()
+        || args.centre_merge.is_some()
+        || args.centre_min_share.is_some()
+    {
+        if !cfg.net.has_offsets() {
+            anyhow::bail!(
+                "{}: --centre-split/--centre-merge/--centre-min-share need a four-output network (this one has {})",
+                args.model.display(),
+                cfg.net.outputs
+            );
+        }
+        let c = cfg.post.centres.get_or_insert_with(Default::default);
+        if let Some(v) = args.centre_split {
+            c.split = v;
+        }
+        if let Some(v) = args.centre_merge {
+            c.merge = v;
+        }
+        if let Some(v) = args.centre_min_share {
+            c.min_share = v;
+        }
     }
     cfg.validate()?;
     // Only the network's tensors: a training checkpoint's Adam moments are left behind.

@@ -429,10 +429,10 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
         }
         None => 2,
     };
-    let (preset, scenes, room_fraction) = if outputs == 2 {
-        ("clutter", "clutter", 0.2)
-    } else {
-        ("cpu", "room", 0.0)
+    let (preset, scenes, room_fraction) = match outputs {
+        4 => ("clutter-offsets", "clutter", 0.2),
+        2 => ("clutter", "clutter", 0.2),
+        _ => ("cpu", "room", 0.0),
     };
     let args = ic_train::seg::TrainArgs {
         preset: preset.into(),

@@ -18,7 +18,11 @@ pub struct UNetConfig {
     pub bn_momentum: f64,
     /// Output maps: 1 = object probability (the paper's); 2 = object probability and
     /// instance **core** (an object's pixels at least `train.core_radius` pixels inside its
-    /// own outline), whose connected components separate touching instances.
+    /// own outline), whose connected components separate touching instances; 4 = those two
+    /// and the **centre offset** (x, then y): from each object pixel to the centroid of its
+    /// instance's visible pixels, in units of [`OFFSET_UNIT`] network pixels (image axes: x
+    /// right, y down), so that a core joining two objects can be cut where its pixels point
+    /// to two centres ([`crate::post::split_instances`]).
     #[serde(default = "one")]
     pub outputs: usize,
     /// What the network sees of the depth map ([`crate::input`]); checkpoints written before
@@ -68,7 +72,23 @@ fn one() -> usize {
     1
 }
 
+/// The centre-offset maps' unit, in network pixels: a target of 1 is 16 pixels of the
+/// network's input (e.g. 40 pixels of a 640-pixel-wide depth map seen at 256). Chosen so the
+/// offsets of the objects the clutter scenes hold (≈ 5–100 network pixels across) are of the
+/// order of one, as the other outputs' logits are.
+pub const OFFSET_UNIT: f32 = 16.0;
+
 impl UNetConfig {
+    /// Whether the network has the instance-core map (output 1).
+    pub fn has_core(&self) -> bool {
+        self.outputs >= 2
+    }
+
+    /// Whether the network has the centre-offset maps (outputs 2 and 3, see [`OFFSET_UNIT`]).
+    pub fn has_offsets(&self) -> bool {
+        self.outputs == 4
+    }
+
     pub fn validate(&self) -> Result<()> {
         let bad = |m: String| Err(SegError::Config(m));
         if self.channels.is_empty() || self.channels.contains(&0) {
@@ -87,8 +107,11 @@ impl UNetConfig {
                 self.channels.len()
             ));
         }
-        if !(1..=2).contains(&self.outputs) {
-            return bad(format!("outputs {} must be 1 or 2", self.outputs));
+        if ![1, 2, 4].contains(&self.outputs) {
+            return bad(format!(
+                "outputs {} must be 1 (object), 2 (and core) or 4 (and centre offsets)",
+                self.outputs
+            ));
         }
         if !(self.bn_momentum > 0.0 && self.bn_momentum <= 1.0) {
             return bad(format!(
@@ -134,6 +157,10 @@ pub struct PostConfig {
     /// that no network instance holds ([`crate::support`]); `None`: off.
     #[serde(default)]
     pub support: Option<crate::SupportConfig>,
+    /// Four-output networks: how the centre votes cut and join the cores' instances
+    /// ([`crate::centres`]); `None`: the offsets are not used.
+    #[serde(default)]
+    pub centres: Option<crate::centres::CentreConfig>,
 }
 
 fn default_core_threshold() -> f32 {
@@ -197,6 +224,7 @@ impl Default for PostConfig {
             crop_radius: 1.2,
             core_threshold: 0.5,
             support: None,
+            centres: None,
         }
     }
 }
@@ -218,10 +246,19 @@ pub struct SegTrainConfig {
     /// this many pixels (square, at the network's resolution) all show the same object.
     #[serde(default = "default_core_radius")]
     pub core_radius: usize,
+    /// Four-output networks: weight of the centre offsets' loss (the mean absolute error
+    /// over the object pixels, in [`OFFSET_UNIT`]s, both axes) beside the maps' cross-entropy
+    /// and Dice terms.
+    #[serde(default = "default_offset_weight")]
+    pub offset_weight: f64,
 }
 
 fn default_core_radius() -> usize {
     2
+}
+
+fn default_offset_weight() -> f64 {
+    0.5
 }
 
 /// Everything a checkpoint records.
@@ -260,6 +297,7 @@ impl SegConfig {
                 render_width: 320,
                 render_height: 240,
                 core_radius: 2,
+                offset_weight: default_offset_weight(),
             },
         }
     }
@@ -293,6 +331,7 @@ impl SegConfig {
                 render_width: 256,
                 render_height: 192,
                 core_radius: 2,
+                offset_weight: default_offset_weight(),
             },
         }
     }
@@ -309,6 +348,18 @@ impl SegConfig {
         let mut c = Self::clutter();
         c.preset = "clutter-wide".into();
         c.net.channels = vec![8, 24, 64, 256];
+        c
+    }
+
+    /// The `clutter` preset with the centre-offset outputs (4 outputs): touching objects
+    /// whose cores join are cut where the pixels of one core point to two centres. Its
+    /// training starts from `clutter` weights, the offset maps at zero
+    /// (`Trainer::load_widening`); see `docs/decisions.md`, "Centre offsets".
+    pub fn clutter_offsets() -> Self {
+        let mut c = Self::clutter();
+        c.preset = "clutter-offsets".into();
+        c.net.outputs = 4;
+        c.post.centres = Some(crate::centres::CentreConfig::default());
         c
     }
 
@@ -336,6 +387,7 @@ impl SegConfig {
                 render_width: 64,
                 render_height: 48,
                 core_radius: 1,
+                offset_weight: default_offset_weight(),
             },
         }
     }
@@ -345,6 +397,7 @@ impl SegConfig {
             "cpu" => Ok(Self::cpu()),
             "clutter" => Ok(Self::clutter()),
             "clutter-wide" => Ok(Self::clutter_wide()),
+            "clutter-offsets" => Ok(Self::clutter_offsets()),
             "tiny" => Ok(Self::tiny()),
             "tiny-clutter" => {
                 let mut c = Self::tiny();
@@ -359,8 +412,15 @@ impl SegConfig {
                 c.net.channels = vec![6, 12];
                 Ok(c)
             }
+            "tiny-clutter-offsets" => {
+                let mut c = Self::tiny();
+                c.preset = "tiny-clutter-offsets".into();
+                c.net.outputs = 4;
+                c.post.centres = Some(crate::centres::CentreConfig::default());
+                Ok(c)
+            }
             other => Err(SegError::Config(format!(
-                "unknown preset {other:?} (cpu | clutter | clutter-wide | tiny | tiny-clutter | tiny-clutter-wide)"
+                "unknown preset {other:?} (cpu | clutter | clutter-wide | clutter-offsets | tiny | tiny-clutter | tiny-clutter-wide | tiny-clutter-offsets)"
             ))),
         }
     }
@@ -382,14 +442,18 @@ impl SegConfig {
         if let Some(s) = &p.support {
             s.validate()?;
         }
+        if let Some(c) = &p.centres {
+            c.validate()?;
+        }
         let t = &self.train;
         if t.batch_size == 0
             || !(t.learning_rate > 0.0)
+            || !(t.offset_weight >= 0.0 && t.offset_weight.is_finite())
             || t.render_width == 0
             || t.render_height == 0
         {
             return Err(SegError::Config(
-                "batch_size, learning_rate and the render size must be positive".into(),
+                "batch_size, learning_rate and the render size must be positive, offset_weight finite and not negative".into(),
             ));
         }
         Ok(())

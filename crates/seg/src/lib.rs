@@ -45,6 +45,7 @@
 // `!(x > 0.0)` deliberately rejects NaN as well.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod centres;
 pub mod checkpoint;
 pub mod config;
 mod error;

@@ -163,6 +163,10 @@ pub(crate) fn ranked(
 /// 8-connected components (a thin object whose core vanished is still an instance).
 /// Instances of fewer than `min_pixels` are dropped; each is scored by its mean object
 /// probability; best first as in [`instances`].
+///
+/// With `centres` (a four-output network's votes, [`crate::centres`]), each seed whose
+/// pixels vote for several centres is first cut between them, and after the growth touching
+/// instances whose votes agree are joined.
 #[allow(clippy::too_many_arguments)]
 pub fn split_instances(
     object: &[f32],
@@ -173,6 +177,7 @@ pub fn split_instances(
     core_threshold: f32,
     min_pixels: usize,
     depth: Option<(&DepthImage, f32)>,
+    centres: Option<(&crate::centres::CentreVotes, &crate::centres::CentreConfig)>,
 ) -> Vec<Instance> {
     let (w, h) = (width as usize, height as usize);
     let n = w * h;
@@ -186,7 +191,11 @@ pub fn split_instances(
     let mut label = vec![NONE; n];
     let mut queue = std::collections::VecDeque::new();
     let mut count = 0u32;
-    for c in connected_components(&seeds) {
+    let mut seeds = connected_components(&seeds);
+    if let Some((votes, cfg)) = centres {
+        seeds = crate::centres::cut_seeds(seeds, votes, cfg, min_pixels);
+    }
+    for c in seeds {
         for &i in &c {
             label[i] = count;
             queue.push_back(i);
@@ -217,6 +226,9 @@ pub fn split_instances(
             label[i] = count;
         }
         count += 1;
+    }
+    if let Some((votes, cfg)) = centres {
+        crate::centres::merge_pieces(&mut label, w, votes, cfg, continuous);
     }
     let mut pixels: Vec<Vec<usize>> = vec![Vec::new(); count as usize];
     for (i, &l) in label.iter().enumerate() {
@@ -415,7 +427,7 @@ mod tests {
                 .map(|&b| if b { 0.9 } else { 0.1 })
                 .collect::<Vec<f32>>()
         };
-        let out = split_instances(&p(&obj), &p(&core), 9, 4, 0.5, 0.5, 1, None);
+        let out = split_instances(&p(&obj), &p(&core), 9, 4, 0.5, 0.5, 1, None, None);
         let mut sizes: Vec<usize> = out.iter().map(|i| i.pixels).collect();
         sizes.sort();
         assert_eq!(
@@ -446,6 +458,7 @@ mod tests {
             0.5,
             1,
             Some((&depth, 0.03)),
+            None,
         );
         let mut sizes: Vec<usize> = out.iter().map(|i| i.pixels).collect();
         sizes.sort();

@@ -8,6 +8,7 @@ use candle_nn::VarBuilder;
 use glam::Vec3;
 use ic_geometry::{DepthImage, Image, Intrinsics, Mask};
 
+use crate::centres::CentreVotes;
 use crate::config::SegConfig;
 use crate::infer::FoldedUNet;
 use crate::input::{prepare_input, upsample_bilinear};
@@ -83,8 +84,9 @@ impl Segmenter {
     }
 
     /// Per-pixel probabilities of `images` (each a depth map and its camera) at the network's
-    /// resolution, `[B][outputs·H·W]` (the object map, then the core map of a two-output
-    /// network).
+    /// resolution, `[B][outputs·H·W]` (the object map, then the core map of a two- or
+    /// four-output network, then a four-output network's centre offsets x and y as they are,
+    /// in [`crate::config::OFFSET_UNIT`]s of network pixels).
     pub fn probabilities_small(
         &self,
         images: &[(&DepthImage, &Intrinsics)],
@@ -92,6 +94,9 @@ impl Segmenter {
         let (w, h) = (self.config.net.input_width, self.config.net.input_height);
         let kind = self.config.net.input;
         let prepare = |(d, k): &(&DepthImage, &Intrinsics)| prepare_input(d, k, kind, w, h);
+        // The probability maps (object, core); the centre offsets stay as they are.
+        let maps = self.config.net.outputs.min(2);
+        let plane = (w * h) as usize;
         if self.device.is_cpu() {
             // The folded network (batch norm in the convolutions, no tensor ops): the same
             // function, several times faster on the CPU. Folded per call, so a segmenter
@@ -101,7 +106,7 @@ impl Segmenter {
                 .iter()
                 .map(|image| {
                     let mut logits = folded.forward(&prepare(image)?, h as usize, w as usize)?;
-                    logits
+                    logits[..maps * plane]
                         .iter_mut()
                         .for_each(|v| *v = 1.0 / (1.0 + (-*v).exp()));
                     Ok(logits)
@@ -117,7 +122,12 @@ impl Segmenter {
             (images.len(), kind.channels(), h as usize, w as usize),
             &self.device,
         )?;
-        let p = candle_nn::ops::sigmoid(&self.net.forward_t(&x, false)?.detach())?;
+        let logits = self.net.forward_t(&x, false)?.detach();
+        let mut p = candle_nn::ops::sigmoid(&logits.narrow(1, 0, maps)?)?;
+        let rest = logits.dim(1)? - maps;
+        if rest > 0 {
+            p = Tensor::cat(&[&p, &logits.narrow(1, maps, rest)?], 1)?;
+        }
         Ok(p.flatten_from(1)?.to_vec2::<f32>()?)
     }
 
@@ -177,6 +187,40 @@ impl Segmenter {
         })
     }
 
+    /// A four-output network's centre votes on `depth` (any resolution; it must match
+    /// `intrinsics`): where each pixel says its instance's centre is, in pixels of `depth`.
+    /// `None` for a network without centre offsets.
+    pub fn centre_votes(
+        &self,
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+    ) -> Result<Option<CentreVotes>> {
+        intrinsics.validate()?;
+        depth.check_size(intrinsics.width, intrinsics.height)?;
+        if !self.config.net.has_offsets() {
+            return Ok(None);
+        }
+        let small = self.probabilities_small(&[(depth, intrinsics)])?.remove(0);
+        Ok(self.votes_from(&small, depth))
+    }
+
+    /// The centre votes of `small` (one image of [`Segmenter::probabilities_small`]) at
+    /// `depth`'s resolution; `None` without centre offsets.
+    fn votes_from(&self, small: &[f32], depth: &DepthImage) -> Option<CentreVotes> {
+        let net = &self.config.net;
+        if !net.has_offsets() {
+            return None;
+        }
+        let unit = crate::config::OFFSET_UNIT;
+        Some(CentreVotes::from_offsets(
+            &self.full_resolution(small, 2, depth),
+            &self.full_resolution(small, 3, depth),
+            depth.width,
+            unit * depth.width as f32 / net.input_width as f32,
+            unit * depth.height as f32 / net.input_height as f32,
+        ))
+    }
+
     /// Every object instance in `depth` (any resolution; it must match `intrinsics`), best
     /// score first, masks at the depth map's resolution. A one-output network's instances
     /// are the connected components of its object map; a two-output network's are split by
@@ -190,8 +234,12 @@ impl Segmenter {
         let object = self.full_resolution(&small, 0, depth);
         let post = &self.config.post;
         let min_pixels = post.min_pixels_at(depth.width, depth.height);
-        let mut found = if self.config.net.outputs == 2 {
+        let mut found = if self.config.net.has_core() {
             let core = self.full_resolution(&small, 1, depth);
+            let votes = match &post.centres {
+                Some(cfg) => self.votes_from(&small, depth).map(|v| (v, cfg)),
+                None => None,
+            };
             split_instances(
                 &object,
                 &core,
@@ -201,6 +249,7 @@ impl Segmenter {
                 post.core_threshold,
                 min_pixels,
                 Some((depth, post.depth_jump)),
+                votes.as_ref().map(|(v, c)| (v, *c)),
             )
         } else {
             instances(

@@ -2,10 +2,12 @@
 //! loss ([`seg_loss`]). The trainer (seeded weights, Adam, resumable checkpoints) is
 //! `ic_train::SegTrainer`.
 //!
-//! Loss: the mean per-pixel binary cross-entropy on each output logit plus `dice_weight` ×
-//! (1 − soft Dice), the Dice term averaged over the images and outputs of the batch. The
-//! objects cover 0.5–40 % of the pixels; the Dice term keeps a small object from being a
-//! rounding error of the cross-entropy.
+//! Loss: the mean per-pixel binary cross-entropy on each probability map's logit plus
+//! `dice_weight` × (1 − soft Dice), the Dice term averaged over the images and maps of the
+//! batch. The objects cover 0.5–40 % of the pixels; the Dice term keeps a small object from
+//! being a rounding error of the cross-entropy. A four-output network's centre offsets add
+//! `offset_weight` × their mean absolute error over the true object pixels (in
+//! [`crate::config::OFFSET_UNIT`]s; the offsets of other pixels are not trained).
 
 use candle_core::Tensor;
 use ic_geometry::{DepthImage, Image, Intrinsics, Mask};
@@ -20,7 +22,8 @@ pub struct SegExample {
     /// `[C, H, W]` flattened, C the configuration's input channels (see
     /// [`crate::input::prepare_input`]).
     pub input: Vec<f32>,
-    /// `[outputs, H, W]`: 1 on the object (then on the instance cores), 0 elsewhere.
+    /// `[outputs, H, W]`: 1 on the object (then on the instance cores), 0 elsewhere; then, for
+    /// four-output networks, the centre offsets x and y (0 off the objects).
     pub target: Vec<f32>,
 }
 
@@ -44,9 +47,11 @@ impl SegExample {
     /// An example of a scene with many objects, seen by `intrinsics`: `instances` (the depth
     /// map's size) says which instance each pixel shows and `is_object` which ids are objects (not the support or
     /// the background). Targets at the network's resolution: every object pixel, then — for
-    /// two-output networks — the instance cores (object pixels whose neighbours within
-    /// `train.core_radius` pixels all show the same instance; outside the image counts as
-    /// the same).
+    /// two- and four-output networks — the instance cores (object pixels whose neighbours
+    /// within `train.core_radius` pixels all show the same instance; outside the image counts
+    /// as the same), then — for four-output networks — each object pixel's offset to the
+    /// centroid of its instance's pixels at the network's resolution, in
+    /// [`crate::config::OFFSET_UNIT`]s.
     pub fn from_instances(
         depth: &DepthImage,
         intrinsics: &Intrinsics,
@@ -73,8 +78,8 @@ impl SegExample {
             .collect();
         let object: Vec<bool> = ids.iter().map(|&i| i != 0 && is_object(i)).collect();
         let mut target: Vec<f32> = object.iter().map(|&o| o as u8 as f32).collect();
-        if config.net.outputs == 2 {
-            let (wu, hu) = (w as usize, h as usize);
+        let (wu, hu) = (w as usize, h as usize);
+        if config.net.has_core() {
             let r = config.train.core_radius as i64;
             for y in 0..hu {
                 for x in 0..wu {
@@ -96,6 +101,35 @@ impl SegExample {
                 }
             }
         }
+        if config.net.has_offsets() {
+            // Centroid of each instance's pixels (x, y, count), by id.
+            let mut sums: std::collections::HashMap<u32, (f64, f64, f64)> = Default::default();
+            for (i, (&id, &o)) in ids.iter().zip(&object).enumerate() {
+                if o {
+                    let s = sums.entry(id).or_default();
+                    s.0 += (i % wu) as f64;
+                    s.1 += (i / wu) as f64;
+                    s.2 += 1.0;
+                }
+            }
+            let unit = crate::config::OFFSET_UNIT as f64;
+            for axis in 0..2 {
+                for (i, (&id, &o)) in ids.iter().zip(&object).enumerate() {
+                    let v = if o {
+                        let s = sums[&id];
+                        let (c, p) = if axis == 0 {
+                            (s.0 / s.2, (i % wu) as f64)
+                        } else {
+                            (s.1 / s.2, (i / wu) as f64)
+                        };
+                        ((c - p) / unit) as f32
+                    } else {
+                        0.0
+                    };
+                    target.push(v);
+                }
+            }
+        }
         Ok(SegExample {
             input: prepare_input(depth, intrinsics, config.net.input, w, h)?,
             target,
@@ -104,8 +138,36 @@ impl SegExample {
 }
 
 /// The loss (see the module doc) of `logits` `[B, C, H, W]` against `targets` of the same
-/// shape (each output map is its own Dice term).
-pub fn seg_loss(logits: &Tensor, targets: &Tensor, dice_weight: f64) -> Result<Tensor> {
+/// shape (each probability map is its own Dice term). With C = 4 the last two maps are the
+/// centre offsets, weighted by `offset_weight`.
+pub fn seg_loss(
+    logits: &Tensor,
+    targets: &Tensor,
+    dice_weight: f64,
+    offset_weight: f64,
+) -> Result<Tensor> {
+    let c = logits.dim(1)?;
+    if c == 4 {
+        let maps = map_loss(
+            &logits.narrow(1, 0, 2)?,
+            &targets.narrow(1, 0, 2)?,
+            dice_weight,
+        )?;
+        let object = targets.narrow(1, 0, 1)?;
+        let err = (logits.narrow(1, 2, 2)? - targets.narrow(1, 2, 2)?)?
+            .abs()?
+            .broadcast_mul(&object)?;
+        // Mean over the object pixels of both axes' errors (one pixel at least, so a batch
+        // without objects adds nothing).
+        let pixels = (object.sum_all()? * 2.0)?.maximum(1.0)?;
+        let offsets = err.sum_all()?.div(&pixels)?;
+        return Ok((maps + (offsets * offset_weight)?)?);
+    }
+    map_loss(logits, targets, dice_weight)
+}
+
+/// Cross-entropy and Dice over every map of `logits`.
+fn map_loss(logits: &Tensor, targets: &Tensor, dice_weight: f64) -> Result<Tensor> {
     let (b, c, h, w) = logits.dims4()?;
     let x = logits.reshape((b * c, h * w))?;
     let y = targets.reshape((b * c, h * w))?;

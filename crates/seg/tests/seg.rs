@@ -112,7 +112,7 @@ fn every_parameter_receives_a_gradient() {
         &Device::Cpu,
     )
     .unwrap();
-    let loss = seg_loss(&trainer.net().forward_t(&x, true).unwrap(), &y, 1.0).unwrap();
+    let loss = seg_loss(&trainer.net().forward_t(&x, true).unwrap(), &y, 1.0, 0.5).unwrap();
     let grads = loss.backward().unwrap();
     let mut seen = 0;
     for (name, var) in trainer.varmap().data().lock().unwrap().iter() {
@@ -268,5 +268,90 @@ fn segment_rejects_a_depth_map_of_another_size_or_without_valid_pixels() {
     match seg.segment(&empty, &k) {
         Err(SegError::Input(m)) => assert!(m.contains("no valid pixel"), "{m}"),
         other => panic!("{other:?}"),
+    }
+}
+
+/// Two rounded boxes touching side by side at one depth before a wall (64×48, [`camera`]):
+/// instance ids 1 (left, columns 12–31) and 2 (right, columns 32–51), rows 14–33, each
+/// nearest along its middle column so they meet at a crease; the wall is id 3.
+fn touching_boxes() -> (DepthImage, ic_geometry::Image<u32>) {
+    let (w, h) = (64u32, 48u32);
+    let mut depth = DepthImage::filled(w, h, 4.0);
+    let mut ids = ic_geometry::Image {
+        width: w,
+        height: h,
+        data: vec![3u32; (w * h) as usize],
+    };
+    for v in 14..34 {
+        for u in 12..52 {
+            let i = (v * w + u) as usize;
+            let middle = if u < 32 { 21.5 } else { 41.5 };
+            depth.data[i] = 3.0 + 0.01 * (u as f32 - middle).abs();
+            ids.data[i] = if u < 32 { 1 } else { 2 };
+        }
+    }
+    (depth, ids)
+}
+
+#[test]
+fn offset_targets_point_every_object_pixel_to_its_instances_centroid() {
+    let cfg = SegConfig::preset("tiny-clutter-offsets").unwrap();
+    let (depth, ids) = touching_boxes();
+    let ex = SegExample::from_instances(&depth, &camera(), &ids, |i| i != 3, &cfg).unwrap();
+    let (w, h) = (cfg.net.input_width as usize, cfg.net.input_height as usize);
+    let plane = w * h;
+    assert_eq!(ex.target.len(), 4 * plane);
+    // At 32×24 the boxes are columns 6–15 and 16–25, rows 7–16: centroids (10.5, 11.5) and
+    // (20.5, 11.5).
+    let unit = ic_seg::config::OFFSET_UNIT;
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let (tx, ty) = (ex.target[2 * plane + i], ex.target[3 * plane + i]);
+            if ex.target[i] == 1.0 {
+                let cx = if x < 16 { 10.5 } else { 20.5 };
+                assert!((x as f32 + tx * unit - cx).abs() < 1e-4, "x at ({x}, {y})");
+                assert!((y as f32 + ty * unit - 11.5).abs() < 1e-4, "y at ({x}, {y})");
+            } else {
+                assert_eq!((tx, ty), (0.0, 0.0), "off the objects at ({x}, {y})");
+            }
+        }
+    }
+}
+
+#[test]
+fn a_four_output_network_learns_the_centres_and_its_votes_cut_touching_boxes() {
+    let mut cfg = SegConfig::preset("tiny-clutter-offsets").unwrap();
+    cfg.net.channels = vec![8, 16];
+    let (depth, ids) = touching_boxes();
+    let ex = vec![SegExample::from_instances(&depth, &camera(), &ids, |i| i != 3, &cfg).unwrap()];
+    let mut trainer = SegTrainer::new(cfg, 5).unwrap();
+    let first = trainer.loss(&ex).unwrap();
+    for _ in 0..300 {
+        trainer.step(&ex).unwrap();
+    }
+    let after = trainer.loss(&ex).unwrap();
+    assert!(after < 0.1 * first, "loss {first} → {after}");
+    let mut seg = trainer.segmenter();
+    // The votes, not the cores: every pixel is a core, so the cores alone give one instance.
+    seg.config_mut().post.core_threshold = 0.0;
+    let both = |seg: &Segmenter| {
+        let mut found = seg.instances(&depth, &camera()).unwrap();
+        found.sort_by_key(|i| i.mask.data.iter().position(|&m| m));
+        found
+    };
+    seg.config_mut().post.centres = None;
+    assert_eq!(both(&seg).len(), 1, "without the votes the boxes are one");
+    seg.config_mut().post.centres = Some(ic_seg::centres::CentreConfig::default());
+    let found = both(&seg);
+    assert_eq!(found.len(), 2, "the votes cut the boxes apart");
+    for (inst, id) in found.iter().zip([1, 2]) {
+        let truth = Mask {
+            width: 64,
+            height: 48,
+            data: ids.data.iter().map(|&i| i == id).collect(),
+        };
+        let iou = ic_seg::post::iou(&inst.mask, &truth);
+        assert!(iou > 0.8, "box {id}: IoU {iou}");
     }
 }

@@ -81,11 +81,11 @@ pub struct SegStepStats {
 impl Trainer<UNet> {
     /// Starts this network from a checkpoint with as many levels and at most as many channels
     /// per level ([`crate::widen`]: the copies of a channel share its weights, so the
-    /// widened network computes what the checkpoint did), fewer outputs (one, where this one
-    /// has two) or fewer inputs (depth alone, where this one also sees surface normals), or
+    /// widened network computes what the checkpoint did), fewer outputs (one or two, where
+    /// this one has two or four) or fewer inputs (depth alone, where this one also sees surface normals), or
     /// any of these together (the input size may differ: the network is fully
-    /// convolutional). Every weight is copied; the head's object output goes into both
-    /// outputs (the core map starts as the object map); the first convolution's weights of
+    /// convolutional). Every weight is copied; a one-output head's object output also starts
+    /// the core map; new centre-offset maps start at zero; the first convolution's weights of
     /// the new input channels start at zero, so the widened network computes what the
     /// checkpoint did until training teaches it to use them. Errors name `path` and the
     /// tensor that does not fit.
@@ -96,7 +96,10 @@ impl Trainer<UNet> {
             message,
         };
         let (from, to) = (&config.net, &self.config.net);
-        let widen_head = (from.outputs, to.outputs) == (1, 2);
+        // 1 → 2 or 4 outputs: the object map also starts the core map; 2 → 4: the offset maps
+        // start at zero (every pixel its own centre).
+        let widen_head = from.outputs < to.outputs && [(1, 2), (1, 4), (2, 4)]
+            .contains(&(from.outputs, to.outputs));
         let (cin_from, cin_to) = (from.input.channels(), to.input.channels());
         let wider = from.channels.len() == to.channels.len()
             && from.channels.iter().zip(&to.channels).all(|(f, t)| f <= t);
@@ -140,7 +143,18 @@ impl Trainer<UNet> {
                 .get(name)
                 .ok_or_else(|| bad(format!("missing tensor {name}")))?;
             let t = if widen_head && name.starts_with("head.") {
-                Tensor::cat(&[t, t], 0)?
+                let maps = if from.outputs == 1 {
+                    Tensor::cat(&[t, t], 0)?
+                } else {
+                    t.clone()
+                };
+                if to.outputs == 4 {
+                    let mut shape = t.dims().to_vec();
+                    shape[0] = 2;
+                    Tensor::cat(&[&maps, &Tensor::zeros(shape, t.dtype(), t.device())?], 0)?
+                } else {
+                    maps
+                }
             } else if cin_to > cin_from
                 && t.rank() == 4
                 && t.dim(1)? == cin_from
@@ -199,7 +213,12 @@ impl Trainer<UNet> {
     pub fn loss(&self, examples: &[SegExample]) -> Result<f32, SegError> {
         let (x, y) = self.tensors(examples)?;
         let logits = self.net.forward_t(&x, false)?;
-        Ok(seg_loss(&logits, &y, self.config.train.dice_weight)?.to_scalar::<f32>()?)
+        Ok(seg_loss(
+            &logits,
+            &y,
+            self.config.train.dice_weight,
+            self.config.train.offset_weight,
+        )?.to_scalar::<f32>()?)
     }
 
     /// One step: forward (training mode), loss, backward, Adam.
@@ -209,7 +228,12 @@ impl Trainer<UNet> {
         }
         let (x, y) = self.tensors(examples)?;
         let logits = self.net.forward_t(&x, true)?;
-        let loss = seg_loss(&logits, &y, self.config.train.dice_weight)?;
+        let loss = seg_loss(
+            &logits,
+            &y,
+            self.config.train.dice_weight,
+            self.config.train.offset_weight,
+        )?;
         let grads = loss.backward()?;
         self.apply(&grads)?;
         // IoU of the object map (the first output).
@@ -239,8 +263,8 @@ impl Trainer<UNet> {
 
 #[derive(clap::Args)]
 pub struct TrainArgs {
-    /// `cpu`, `clutter` or `clutter-wide` (with `--scenes clutter`), or `tiny` /
-    /// `tiny-clutter` / `tiny-clutter-wide` (smoke tests).
+    /// `cpu`, `clutter`, `clutter-wide` or `clutter-offsets` (with `--scenes clutter`), or
+    /// `tiny` / `tiny-clutter` / `tiny-clutter-wide` / `tiny-clutter-offsets` (smoke tests).
     #[arg(long, default_value = "cpu")]
     pub preset: String,
     /// `room` (the paper's: one object in the cube room; `--objects` is a folder of meshes
@@ -483,7 +507,7 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
                 .all(|(a, b)| a <= b)
     };
     let widen = init_config.as_ref().is_some_and(|c| {
-        (c.net.outputs == 1 && preset.net.outputs == 2)
+        c.net.outputs < preset.net.outputs
             || input.is_some_and(|i| i != c.net.input)
             || wider_preset(c)
     });
@@ -693,6 +717,37 @@ fn match_scene(
     ic_eval::instances::match_instances(&pred, &truth).map_err(|e| anyhow::anyhow!(e))
 }
 
+/// The mean distance, in pixels, from the vote of each visible pixel of the scene's objects
+/// (those [`match_scene`] scores) to the centroid of its object's visible pixels, and the
+/// same from the pixel itself (what votes without offsets would score).
+fn centre_vote_error(votes: &ic_seg::centres::CentreVotes, s: &ClutterScene) -> (f64, f64) {
+    let area = (s.intrinsics.width as f64 * s.intrinsics.height as f64) / (640.0 * 480.0);
+    let min = (MIN_TRUE_PIXELS_640 * area).round().max(1.0) as usize;
+    let w = s.intrinsics.width as usize;
+    let (mut sum, mut at_pixel, mut n) = (0.0, 0.0, 0usize);
+    for (k, o) in s.objects.iter().enumerate() {
+        if k > 0 && o.visible_pixels < min {
+            continue;
+        }
+        let mask = s.mask(o.instance_id);
+        let pixels: Vec<usize> = (0..mask.data.len()).filter(|&i| mask.data[i]).collect();
+        if pixels.is_empty() {
+            continue;
+        }
+        let c = pixels.iter().fold((0.0, 0.0), |(x, y), &i| {
+            (x + (i % w) as f64, y + (i / w) as f64)
+        });
+        let c = (c.0 / pixels.len() as f64, c.1 / pixels.len() as f64);
+        for &i in &pixels {
+            sum += ((votes.x[i] as f64 - c.0).powi(2) + (votes.y[i] as f64 - c.1).powi(2)).sqrt();
+            let (x, y) = ((i % w) as f64, (i / w) as f64);
+            at_pixel += ((x - c.0).powi(2) + (y - c.1).powi(2)).sqrt();
+            n += 1;
+        }
+    }
+    (sum / n.max(1) as f64, at_pixel / n.max(1) as f64)
+}
+
 /// [`train`] on given corpora, optionally starting from the weights of `init`.
 pub fn train_objects(
     args: &TrainArgs,
@@ -722,12 +777,12 @@ pub fn train_objects(
     );
     let (w, h) = (cfg.train.render_width, cfg.train.render_height);
     let kind = check_scenes(args)?;
-    if (kind == SceneKind::Clutter) != (cfg.net.outputs == 2) {
+    if (kind == SceneKind::Clutter) != cfg.net.has_core() {
         bail!(
             "--scenes {} needs a {} network (preset {:?} has {} output(s)): use --preset {}",
             args.scenes,
             if kind == SceneKind::Clutter {
-                "two-output"
+                "two- or four-output"
             } else {
                 "one-output"
             },
@@ -1089,6 +1144,7 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     let mut matches = Vec::new();
     let mut seconds = Vec::new();
     let mut drawn = 0;
+    let mut vote_errors = Vec::new();
     let mut rows = String::from(
         "scene,support,objects,target_copies,target_object,target_size_m,target_depth_m,\
          target_visible_px,target_best_iou,target_best_cover,target_covered,\
@@ -1100,6 +1156,9 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
         let found = seg.instances(&s.depth, &s.intrinsics)?;
         let m = match_scene(&found, &s)?;
         seconds.push(t.elapsed().as_secs_f64());
+        if let Some(votes) = seg.centre_votes(&s.depth, &s.intrinsics)? {
+            vote_errors.push(centre_vote_error(&votes, &s));
+        }
         let target = &s.objects[0];
         if let (Some(dir), Some(kind)) = (&args.misses, ic_eval::instances::TargetMisses::kind(&m))
             && drawn < MAX_MISS_SHEETS
@@ -1145,6 +1204,17 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
         "config": seg.config(),
         "instances": summary,
         "seconds_median": ic_eval::median(&seconds),
+        // Four-output networks: per scene, the mean distance (pixels of the 640×480 map)
+        // from each true object pixel's vote to its instance's centroid; `at_pixel`: the
+        // same from the pixel itself (votes without offsets).
+        "centre_vote_error_px": (!vote_errors.is_empty()).then(|| {
+            let (err, base): (Vec<f64>, Vec<f64>) = vote_errors.iter().copied().unzip();
+            serde_json::json!({
+                "median": ic_eval::median(&err),
+                "mean": err.iter().sum::<f64>() / err.len() as f64,
+                "at_pixel_median": ic_eval::median(&base),
+            })
+        }),
     });
     let out = args.out.clone().unwrap_or_else(|| {
         let mut p = args.model.clone().into_os_string();

@@ -469,7 +469,7 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
         ..args
     };
     let err = ic_train::seg::train(&wrong, control(never())).unwrap_err();
-    assert!(format!("{err:#}").contains("two-output"), "{err:#}");
+    assert!(format!("{err:#}").contains("two- or four-output"), "{err:#}");
     // `eval-seg --scenes clutter` scores it, one CSV row per scene, and draws a sheet of
     // each scene whose target it missed; the support instances only add instances.
     let eval = |support_height: Option<f32>, name: &str| {
@@ -609,6 +609,21 @@ fn a_one_output_checkpoint_starts_a_two_output_network_with_its_head_widened() {
     assert!(format!("{err:#}").contains("final.safetensors"), "{err:#}");
 }
 
+/// A 64×48 depth map of a box (depth 2) on a floor that recedes row by row (3 + 0.02·row),
+/// and its camera.
+fn box_on_tilted_floor() -> (ic_geometry::DepthImage, ic_geometry::Intrinsics) {
+    let (w, h) = (64u32, 48u32);
+    let k = ic_geometry::Intrinsics::new(60.0, 60.0, 31.5, 23.5, w, h).unwrap();
+    let mut depth = ic_geometry::DepthImage::filled(w, h, 0.0);
+    for v in 0..h {
+        for u in 0..w {
+            let box_ = (20..40).contains(&u) && (10..30).contains(&v);
+            depth.data[(v * w + u) as usize] = if box_ { 2.0 } else { 3.0 + 0.02 * v as f32 };
+        }
+    }
+    (depth, k)
+}
+
 #[test]
 fn a_depth_only_checkpoint_starts_a_network_with_normals_that_computes_the_same_until_trained() {
     let dir = tempfile::tempdir().unwrap();
@@ -621,16 +636,8 @@ fn a_depth_only_checkpoint_starts_a_network_with_normals_that_computes_the_same_
     };
     let t = ic_train::seg::make_trainer(&args, &dir.path().join("none"), Some(&init)).unwrap();
     assert_eq!(t.config().net.input, ic_seg::SegInput::DepthNormals);
-    // A box on a tilted floor: the normals differ from pixel to pixel, and their weights are 0.
-    let (w, h) = (64u32, 48u32);
-    let k = ic_geometry::Intrinsics::new(60.0, 60.0, 31.5, 23.5, w, h).unwrap();
-    let mut depth = ic_geometry::DepthImage::filled(w, h, 0.0);
-    for v in 0..h {
-        for u in 0..w {
-            let box_ = (20..40).contains(&u) && (10..30).contains(&v);
-            depth.data[(v * w + u) as usize] = if box_ { 2.0 } else { 3.0 + 0.02 * v as f32 };
-        }
-    }
+    // The normals differ from pixel to pixel of this scene, and their weights are 0.
+    let (depth, k) = box_on_tilted_floor();
     let before = ic_seg::Segmenter::load(&init).unwrap();
     let after = t.segmenter();
     let p = |s: &ic_seg::Segmenter| s.probabilities_small(&[(&depth, &k)]).unwrap().remove(0);
@@ -780,15 +787,7 @@ fn a_narrower_checkpoint_starts_a_wider_network_that_computes_the_same() {
     let narrow_args = clutter_args(&narrow_run, 2);
     ic_train::seg::train(&narrow_args, control(never())).unwrap();
     let init = narrow_run.join("final.safetensors");
-    let (w, h) = (64u32, 48u32);
-    let k = ic_geometry::Intrinsics::new(60.0, 60.0, 31.5, 23.5, w, h).unwrap();
-    let mut depth = ic_geometry::DepthImage::filled(w, h, 0.0);
-    for v in 0..h {
-        for u in 0..w {
-            let box_ = (20..40).contains(&u) && (10..30).contains(&v);
-            depth.data[(v * w + u) as usize] = if box_ { 2.0 } else { 3.0 + 0.02 * v as f32 };
-        }
-    }
+    let (depth, k) = box_on_tilted_floor();
     let p = |s: &ic_seg::Segmenter| s.probabilities_small(&[(&depth, &k)]).unwrap().remove(0);
     let before = p(&ic_seg::Segmenter::load(&init).unwrap());
 
@@ -849,4 +848,44 @@ fn a_narrower_checkpoint_starts_a_wider_network_that_computes_the_same() {
     let mut narrow_trainer = ic_train::SegTrainer::new(narrow.clone(), 1).unwrap();
     let err = narrow_trainer.load_widening(&wide_file).unwrap_err();
     assert!(err.to_string().contains("wide.safetensors"), "{err}");
+}
+
+#[test]
+fn a_two_output_checkpoint_starts_a_four_output_network_with_the_same_maps_and_zero_offsets() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("two");
+    let two_args = clutter_args(&run, 2);
+    ic_train::seg::train(&two_args, control(never())).unwrap();
+    let init = run.join("final.safetensors");
+    let (depth, k) = box_on_tilted_floor();
+    let p = |s: &ic_seg::Segmenter| s.probabilities_small(&[(&depth, &k)]).unwrap().remove(0);
+    let before = p(&ic_seg::Segmenter::load(&init).unwrap());
+    let args = ic_train::seg::TrainArgs {
+        preset: "tiny-clutter-offsets".into(),
+        ..two_args
+    };
+    let t = ic_train::seg::make_trainer(&args, &dir.path().join("none"), Some(&init)).unwrap();
+    assert_eq!(t.config().net.outputs, 4);
+    let after = p(&t.segmenter());
+    assert_eq!(after.len(), 2 * before.len());
+    let (maps, offsets) = after.split_at(before.len());
+    for (x, y) in before.iter().zip(maps) {
+        assert!((x - y).abs() < 1e-6, "{x} vs {y}");
+    }
+    assert!(offsets.iter().all(|&o| o == 0.0), "the offsets start at zero");
+    // And the four-output network trains on clutter scenes.
+    let out = dir.path().join("four");
+    let four = ic_train::seg::TrainArgs {
+        init: Some(init.clone()),
+        ..clutter_args(&out, 2)
+    };
+    let four = ic_train::seg::TrainArgs {
+        preset: "tiny-clutter-offsets".into(),
+        ..four
+    };
+    let outcome = ic_train::seg::train(&four, control(never())).unwrap();
+    assert_eq!(outcome.iteration, 2);
+    let trained = ic_seg::checkpoint::read_config(&out.join("final.safetensors")).unwrap();
+    assert_eq!(trained.net.outputs, 4);
+    assert!(trained.post.centres.is_some());
 }
