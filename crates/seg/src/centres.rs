@@ -162,44 +162,28 @@ fn two_means(pixels: &[usize], votes: &CentreVotes) -> Option<(Vec<usize>, Vec<u
         })
         .collect();
     for _ in 0..10 {
-        let a: Vec<usize> = pixels
-            .iter()
-            .zip(&assign)
-            .filter(|(_, s)| **s)
-            .map(|(&i, _)| i)
-            .collect();
-        let b: Vec<usize> = pixels
-            .iter()
-            .zip(&assign)
-            .filter(|(_, s)| !**s)
-            .map(|(&i, _)| i)
-            .collect();
+        let (a, b) = partition(pixels, &assign);
         if a.is_empty() || b.is_empty() {
             return None;
         }
         let (ca, cb) = (votes.centre(&a).0, votes.centre(&b).0);
-        let next: Vec<bool> = pixels
-            .iter()
-            .map(|&i| side(votes.at(i), ca, cb))
-            .collect();
+        let next: Vec<bool> = pixels.iter().map(|&i| side(votes.at(i), ca, cb)).collect();
         if next == assign {
             return Some((a, b));
         }
         assign = next;
     }
-    let a = pixels
-        .iter()
-        .zip(&assign)
-        .filter(|(_, s)| **s)
-        .map(|(&i, _)| i)
-        .collect::<Vec<_>>();
-    let b = pixels
-        .iter()
-        .zip(&assign)
-        .filter(|(_, s)| !**s)
-        .map(|(&i, _)| i)
-        .collect::<Vec<_>>();
+    let (a, b) = partition(pixels, &assign);
     (!a.is_empty() && !b.is_empty()).then_some((a, b))
+}
+
+/// `pixels` split by `first`: those marked, then the others.
+fn partition(pixels: &[usize], first: &[bool]) -> (Vec<usize>, Vec<usize>) {
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    for (&i, &f) in pixels.iter().zip(first) {
+        if f { a.push(i) } else { b.push(i) }
+    }
+    (a, b)
 }
 
 /// The seeds (groups of pixel indices) with every seed cut by its votes ([`cut`]).
@@ -230,7 +214,11 @@ pub fn merge_pieces(
     if cfg.merge <= 0.0 {
         return;
     }
-    let count = label.iter().filter(|&&l| l != NONE).max().map_or(0, |&l| l + 1) as usize;
+    let count = label
+        .iter()
+        .filter(|&&l| l != NONE)
+        .max()
+        .map_or(0, |&l| l + 1) as usize;
     let mut pixels: Vec<Vec<usize>> = vec![Vec::new(); count];
     for (i, &l) in label.iter().enumerate() {
         if l != NONE {
@@ -371,10 +359,22 @@ mod tests {
             votes.x[i] += jitter(i);
         }
         merge_pieces(&mut label, w, &votes, &CentreConfig::default(), |_, _| true);
-        assert!(label[..].iter().enumerate().all(|(i, &l)| l == if i % w < 20 { 0 } else { 2 }));
+        assert!(
+            label[..]
+                .iter()
+                .enumerate()
+                .all(|(i, &l)| l == if i % w < 20 { 0 } else { 2 })
+        );
         // Across a depth step, nothing merges.
         let mut label: Vec<u32> = (0..w * h).map(|i| ((i % w) / 10) as u32).collect();
-        merge_pieces(&mut label, w, &votes, &CentreConfig::default(), |_, _| false);
-        assert!(label.iter().enumerate().all(|(i, &l)| l == ((i % w) / 10) as u32));
+        merge_pieces(&mut label, w, &votes, &CentreConfig::default(), |_, _| {
+            false
+        });
+        assert!(
+            label
+                .iter()
+                .enumerate()
+                .all(|(i, &l)| l == ((i % w) / 10) as u32)
+        );
     }
 }

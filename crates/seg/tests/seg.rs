@@ -311,7 +311,10 @@ fn offset_targets_point_every_object_pixel_to_its_instances_centroid() {
             if ex.target[i] == 1.0 {
                 let cx = if x < 16 { 10.5 } else { 20.5 };
                 assert!((x as f32 + tx * unit - cx).abs() < 1e-4, "x at ({x}, {y})");
-                assert!((y as f32 + ty * unit - 11.5).abs() < 1e-4, "y at ({x}, {y})");
+                assert!(
+                    (y as f32 + ty * unit - 11.5).abs() < 1e-4,
+                    "y at ({x}, {y})"
+                );
             } else {
                 assert_eq!((tx, ty), (0.0, 0.0), "off the objects at ({x}, {y})");
             }

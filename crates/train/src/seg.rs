@@ -98,8 +98,8 @@ impl Trainer<UNet> {
         let (from, to) = (&config.net, &self.config.net);
         // 1 → 2 or 4 outputs: the object map also starts the core map; 2 → 4: the offset maps
         // start at zero (every pixel its own centre).
-        let widen_head = from.outputs < to.outputs && [(1, 2), (1, 4), (2, 4)]
-            .contains(&(from.outputs, to.outputs));
+        let widen_head = from.outputs < to.outputs
+            && [(1, 2), (1, 4), (2, 4)].contains(&(from.outputs, to.outputs));
         let (cin_from, cin_to) = (from.input.channels(), to.input.channels());
         let wider = from.channels.len() == to.channels.len()
             && from.channels.iter().zip(&to.channels).all(|(f, t)| f <= t);
@@ -218,7 +218,8 @@ impl Trainer<UNet> {
             &y,
             self.config.train.dice_weight,
             self.config.train.offset_weight,
-        )?.to_scalar::<f32>()?)
+        )?
+        .to_scalar::<f32>()?)
     }
 
     /// One step: forward (training mode), loss, backward, Adam.

@@ -469,7 +469,10 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
         ..args
     };
     let err = ic_train::seg::train(&wrong, control(never())).unwrap_err();
-    assert!(format!("{err:#}").contains("two- or four-output"), "{err:#}");
+    assert!(
+        format!("{err:#}").contains("two- or four-output"),
+        "{err:#}"
+    );
     // `eval-seg --scenes clutter` scores it, one CSV row per scene, and draws a sheet of
     // each scene whose target it missed; the support instances only add instances.
     let eval = |support_height: Option<f32>, name: &str| {
@@ -872,7 +875,10 @@ fn a_two_output_checkpoint_starts_a_four_output_network_with_the_same_maps_and_z
     for (x, y) in before.iter().zip(maps) {
         assert!((x - y).abs() < 1e-6, "{x} vs {y}");
     }
-    assert!(offsets.iter().all(|&o| o == 0.0), "the offsets start at zero");
+    assert!(
+        offsets.iter().all(|&o| o == 0.0),
+        "the offsets start at zero"
+    );
     // And the four-output network trains on clutter scenes.
     let out = dir.path().join("four");
     let four = ic_train::seg::TrainArgs {
