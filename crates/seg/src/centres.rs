@@ -344,20 +344,14 @@ mod tests {
     fn touching_pieces_that_vote_for_one_centre_are_merged_and_others_are_not() {
         // Three pieces side by side: 0 and 1 vote for one centre, 2 for another.
         let (w, h) = (30, 6);
-        let mut label = vec![0u32; w * h];
-        let mut votes = CentreVotes {
+        let mut label: Vec<u32> = (0..w * h).map(|i| ((i % w) / 10) as u32).collect();
+        let votes = CentreVotes {
             width: w as u32,
-            x: vec![10.0; w * h],
+            x: (0..w * h)
+                .map(|i| if i % w >= 20 { 25.0 } else { 10.0 } + jitter(i))
+                .collect(),
             y: vec![3.0; w * h],
         };
-        for i in 0..w * h {
-            let x = i % w;
-            label[i] = (x / 10) as u32;
-            if x >= 20 {
-                votes.x[i] = 25.0;
-            }
-            votes.x[i] += jitter(i);
-        }
         merge_pieces(&mut label, w, &votes, &CentreConfig::default(), |_, _| true);
         assert!(
             label[..]
