@@ -225,7 +225,8 @@ impl Segmenter {
     /// score first, masks at the depth map's resolution. A one-output network's instances
     /// are the connected components of its object map; a two-output network's are split by
     /// their cores ([`split_instances`], growth stopped at relative depth steps above
-    /// `post.depth_jump`). Instances below `post.min_pixels` (given for 640×480, scaled with
+    /// `post.depth_jump`); a four-output network's cores are also cut and joined by their
+    /// centre votes when `post.centres` says so ([`crate::centres`]). Instances below `post.min_pixels` (given for 640×480, scaled with
     /// the area) are dropped; none is an empty list, not an error.
     pub fn instances(&self, depth: &DepthImage, intrinsics: &Intrinsics) -> Result<Vec<Instance>> {
         intrinsics.validate()?;
