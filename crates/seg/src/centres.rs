@@ -20,7 +20,8 @@ pub struct CentreConfig {
     /// farther apart than `split` × √(s₁² + s₂²), s the groups' root-mean-square distances
     /// of their votes to their centre; each part is cut again the same way. 0: never.
     pub split: f32,
-    /// Each part of a cut holds at least this share of the seed's pixels (and `min_pixels`).
+    /// Each part of a cut holds at least this share of the pixels it is cut from (and
+    /// `min_pixels`).
     pub min_share: f32,
     /// Two touching instances (at least `min_contact` pairs of 4-neighbours, within the
     /// relative depth step) become one when their mean votes lie closer than `merge` ×
