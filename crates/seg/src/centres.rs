@@ -201,12 +201,11 @@ pub fn cut_seeds(
 }
 
 /// Joins touching instances whose votes agree (see [`CentreConfig::merge`]): `label` holds
-/// each pixel's instance (`u32::MAX`: none), `width` wide; `continuous(i, j)` says whether
+/// each pixel's instance (`u32::MAX`: none), as wide as `votes`; `continuous(i, j)` says whether
 /// neighbouring pixels `i` and `j` lie on one surface. Labels are rewritten in place to the
 /// smallest label of each merged group.
 pub fn merge_pieces(
     label: &mut [u32],
-    width: usize,
     votes: &CentreVotes,
     cfg: &CentreConfig,
     continuous: impl Fn(usize, usize) -> bool,
@@ -215,6 +214,7 @@ pub fn merge_pieces(
     if cfg.merge <= 0.0 {
         return;
     }
+    let width = votes.width as usize;
     let count = label
         .iter()
         .filter(|&&l| l != NONE)
@@ -353,7 +353,7 @@ mod tests {
                 .collect(),
             y: vec![3.0; w * h],
         };
-        merge_pieces(&mut label, w, &votes, &CentreConfig::default(), |_, _| true);
+        merge_pieces(&mut label, &votes, &CentreConfig::default(), |_, _| true);
         assert!(
             label[..]
                 .iter()
@@ -362,9 +362,7 @@ mod tests {
         );
         // Across a depth step, nothing merges.
         let mut label: Vec<u32> = (0..w * h).map(|i| ((i % w) / 10) as u32).collect();
-        merge_pieces(&mut label, w, &votes, &CentreConfig::default(), |_, _| {
-            false
-        });
+        merge_pieces(&mut label, &votes, &CentreConfig::default(), |_, _| false);
         assert!(
             label
                 .iter()

@@ -228,7 +228,7 @@ pub fn split_instances(
         count += 1;
     }
     if let Some((votes, cfg)) = centres {
-        crate::centres::merge_pieces(&mut label, w, votes, cfg, continuous);
+        crate::centres::merge_pieces(&mut label, votes, cfg, continuous);
     }
     let mut pixels: Vec<Vec<usize>> = vec![Vec::new(); count as usize];
     for (i, &l) in label.iter().enumerate() {

@@ -187,23 +187,6 @@ impl Segmenter {
         })
     }
 
-    /// A four-output network's centre votes on `depth` (any resolution; it must match
-    /// `intrinsics`): where each pixel says its instance's centre is, in pixels of `depth`.
-    /// `None` for a network without centre offsets.
-    pub fn centre_votes(
-        &self,
-        depth: &DepthImage,
-        intrinsics: &Intrinsics,
-    ) -> Result<Option<CentreVotes>> {
-        intrinsics.validate()?;
-        depth.check_size(intrinsics.width, intrinsics.height)?;
-        if !self.config.net.has_offsets() {
-            return Ok(None);
-        }
-        let small = self.probabilities_small(&[(depth, intrinsics)])?.remove(0);
-        Ok(self.votes_from(&small, depth))
-    }
-
     /// The centre votes of `small` (one image of [`Segmenter::probabilities_small`]) at
     /// `depth`'s resolution; `None` without centre offsets.
     fn votes_from(&self, small: &[f32], depth: &DepthImage) -> Option<CentreVotes> {
@@ -229,18 +212,40 @@ impl Segmenter {
     /// centre votes when `post.centres` says so ([`crate::centres`]). Instances below `post.min_pixels` (given for 640×480, scaled with
     /// the area) are dropped; none is an empty list, not an error.
     pub fn instances(&self, depth: &DepthImage, intrinsics: &Intrinsics) -> Result<Vec<Instance>> {
+        Ok(self.instances_inner(depth, intrinsics, false)?.0)
+    }
+
+    /// [`Segmenter::instances`] and, from the same pass of the network, a four-output
+    /// network's centre votes (where each pixel says its instance's centre is, in pixels of
+    /// `depth`; `None` without centre offsets), whether or not `post.centres` uses them.
+    pub fn instances_and_votes(
+        &self,
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+    ) -> Result<(Vec<Instance>, Option<CentreVotes>)> {
+        self.instances_inner(depth, intrinsics, true)
+    }
+
+    /// The instances, and the votes when `want_votes` or `post.centres` needs them.
+    fn instances_inner(
+        &self,
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+        want_votes: bool,
+    ) -> Result<(Vec<Instance>, Option<CentreVotes>)> {
         intrinsics.validate()?;
         depth.check_size(intrinsics.width, intrinsics.height)?;
         let small = self.probabilities_small(&[(depth, intrinsics)])?.remove(0);
         let object = self.full_resolution(&small, 0, depth);
         let post = &self.config.post;
         let min_pixels = post.min_pixels_at(depth.width, depth.height);
+        let votes = if want_votes || post.centres.is_some() {
+            self.votes_from(&small, depth)
+        } else {
+            None
+        };
         let mut found = if self.config.net.has_core() {
             let core = self.full_resolution(&small, 1, depth);
-            let votes = match &post.centres {
-                Some(cfg) => self.votes_from(&small, depth).map(|v| (v, cfg)),
-                None => None,
-            };
             split_instances(
                 &object,
                 &core,
@@ -250,7 +255,7 @@ impl Segmenter {
                 post.core_threshold,
                 min_pixels,
                 Some((depth, post.depth_jump)),
-                votes.as_ref().map(|(v, c)| (v, *c)),
+                votes.as_ref().zip(post.centres.as_ref()),
             )
         } else {
             instances(
@@ -294,7 +299,7 @@ impl Segmenter {
                 );
             }
         }
-        Ok(found)
+        Ok((found, votes))
     }
 
     /// The observed object points of a segmentation, as the paper prepares them: the mask

@@ -98,8 +98,7 @@ impl Trainer<UNet> {
         let (from, to) = (&config.net, &self.config.net);
         // 1 → 2 or 4 outputs: the object map also starts the core map; 2 → 4: the offset maps
         // start at zero (every pixel its own centre).
-        let widen_head = from.outputs < to.outputs
-            && [(1, 2), (1, 4), (2, 4)].contains(&(from.outputs, to.outputs));
+        let widen_head = [(1, 2), (1, 4), (2, 4)].contains(&(from.outputs, to.outputs));
         let (cin_from, cin_to) = (from.input.channels(), to.input.channels());
         let wider = from.channels.len() == to.channels.len()
             && from.channels.iter().zip(&to.channels).all(|(f, t)| f <= t);
@@ -1154,10 +1153,10 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     for (i, s) in scenes.enumerate() {
         let s = s?;
         let t = Instant::now();
-        let found = seg.instances(&s.depth, &s.intrinsics)?;
+        let (found, votes) = seg.instances_and_votes(&s.depth, &s.intrinsics)?;
         let m = match_scene(&found, &s)?;
         seconds.push(t.elapsed().as_secs_f64());
-        if let Some(votes) = seg.centre_votes(&s.depth, &s.intrinsics)? {
+        if let Some(votes) = votes {
             vote_errors.push(centre_vote_error(&votes, &s));
         }
         let target = &s.objects[0];
