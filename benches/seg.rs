@@ -1,6 +1,9 @@
 //! Benchmarks of `ic_seg`: segmentation of one 640×480 depth map by the shipped model
 //! (input preparation, network, up-sampling, components, depth refinement), the geometry-only
-//! alternative on the same map, and one training step of the `cpu` preset at its batch size.
+//! alternative on the same map, one training step of the `cpu` and `clutter` presets at their
+//! batch size, and (`seg_kernels`) the fused convolution and batch norm + ReLU of the U-Net's
+//! training against the tensor-op versions they replaced, forward + backward in the same run,
+//! at the `clutter` preset's finest (8 channels, 256×192) and coarsest (128, 32×24) levels.
 //!
 //! The scene is a box in front of a wall, so both methods find one object.
 
@@ -70,8 +73,67 @@ fn train_step(c: &mut Criterion) {
     group.bench_function("cpu_batch", |b| {
         b.iter(|| trainer.step(&batch).expect("step"))
     });
+    let cfg = SegConfig::clutter();
+    let (depth, mask) = scene(cfg.train.render_width, cfg.train.render_height);
+    let k = Intrinsics::new(210.0, 210.0, 127.5, 95.5, 256, 192).expect("camera");
+    let ex = SegExample::new(&depth, &k, &mask, &cfg).expect("example");
+    let batch = vec![ex; cfg.train.batch_size];
+    let mut trainer = SegTrainer::new(cfg, 1).expect("network");
+    group.bench_function("clutter_batch", |b| {
+        b.iter(|| trainer.step(&batch).expect("step"))
+    });
     group.finish();
 }
 
-criterion_group!(benches, baseline, segment, train_step);
+/// `f()` then a backward pass of its sum.
+fn fwd_bwd(f: &dyn Fn() -> candle_core::Tensor) -> candle_core::backprop::GradStore {
+    f().sum_all().expect("sum").backward().expect("backward")
+}
+
+fn kernels(c: &mut Criterion) {
+    use candle_core::{DType, Device, Var};
+    use ic_nn::ops::conv::{conv2d_same, conv2d_same_reference};
+    use rand::{Rng, SeedableRng};
+    let dev = Device::Cpu;
+    let randn = |shape: &[usize], seed: u64| {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let n: usize = shape.iter().product();
+        let v: Vec<f32> = (0..n).map(|_| rng.random_range(-1.0f32..1.0)).collect();
+        Var::from_vec(v, shape, &dev).expect("var")
+    };
+    let varmap = candle_nn::VarMap::new();
+    let vb = candle_nn::VarBuilder::from_varmap(&varmap, DType::F32, &dev);
+    let bn = ic_nn::norm::BatchNorm2::new(vb.pp("bn"), 8, 0.1).expect("bn");
+    let mut g = c.benchmark_group("seg_kernels");
+    g.sample_size(10);
+    for (name, x, w) in [
+        (
+            "conv3x3_4x8x192x256",
+            randn(&[4, 8, 192, 256], 1),
+            randn(&[8, 8, 3, 3], 2),
+        ),
+        (
+            "conv3x3_4x128x24x32",
+            randn(&[4, 128, 24, 32], 3),
+            randn(&[128, 128, 3, 3], 4),
+        ),
+    ] {
+        g.bench_function(format!("{name}_fwd_bwd/fused"), |b| {
+            b.iter(|| fwd_bwd(&|| conv2d_same(&x, &w).expect("conv")))
+        });
+        g.bench_function(format!("{name}_fwd_bwd/reference"), |b| {
+            b.iter(|| fwd_bwd(&|| conv2d_same_reference(&x, &w).expect("conv")))
+        });
+    }
+    let x = randn(&[4, 8, 192, 256], 5);
+    g.bench_function("batch_norm_relu_4x8x192x256_fwd_bwd/fused", |b| {
+        b.iter(|| fwd_bwd(&|| bn.forward_relu(&x, true).expect("bn")))
+    });
+    g.bench_function("batch_norm_relu_4x8x192x256_fwd_bwd/reference", |b| {
+        b.iter(|| fwd_bwd(&|| bn.forward_t(&x, true).and_then(|y| y.relu()).expect("bn")))
+    });
+    g.finish();
+}
+
+criterion_group!(benches, baseline, segment, train_step, kernels);
 criterion_main!(benches);

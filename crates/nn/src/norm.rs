@@ -96,7 +96,7 @@ impl BatchNorm1 {
         Ok((scale, shift))
     }
 
-    /// `LeakyReLU(BN(x))` with negative slope `slope` (> 0): the same function as
+    /// `LeakyReLU(BN(x))` with negative slope `slope` (≥ 0; 0 is the ReLU): the same function as
     /// [`Self::forward_t`] followed by `max(y, slope·y)`, and the same running-statistics update.
     ///
     /// On the CPU with f32 one fused op (forward and backward, one pass per channel) instead of
@@ -106,7 +106,7 @@ impl BatchNorm1 {
         let fused = x.device().is_cpu()
             && x.dtype() == DType::F32
             && self.weight.dtype() == DType::F32
-            && slope > 0.0;
+            && slope >= 0.0;
         if !fused {
             let y = self.forward_t(x, train)?;
             return y.maximum(&(&y * slope as f64)?);
@@ -163,6 +163,15 @@ impl BatchNorm2 {
         let (b, c, h, w) = x.dims4()?;
         self.0
             .forward_t(&x.reshape((b, c, h * w))?, train)?
+            .reshape((b, c, h, w))
+    }
+
+    /// `ReLU(BN(x))`: [`BatchNorm1::forward_leaky_relu`] with slope 0 over the flattened
+    /// pixels (one fused op on the CPU with f32).
+    pub fn forward_relu(&self, x: &Tensor, train: bool) -> Result<Tensor> {
+        let (b, c, h, w) = x.dims4()?;
+        self.0
+            .forward_leaky_relu(&x.reshape((b, c, h * w))?, train, 0.0)?
             .reshape((b, c, h, w))
     }
 }

@@ -10,14 +10,12 @@
 //! `cpu` preset's 160×120 for 2.6 times the pixels.
 
 use candle_core::Result;
+use ic_nn::ops::conv::{rows_per_strip, unfold};
 use ic_nn::ops::fastmath::matmul;
 use ic_nn::ops::{MatMut, MatRef};
 use rayon::prelude::*;
 
 use crate::unet::{Conv2d, ConvBnRelu, UNet};
-
-/// Unfolded input values (channels × 9 × strip pixels) per strip, at most: about 1 MB of f32.
-const STRIP_VALUES: usize = 1 << 18;
 
 /// One convolution with its batch norm folded in: `y = W·x + b`, then ReLU when `relu`.
 struct Folded {
@@ -68,13 +66,13 @@ impl Folded {
         debug_assert_eq!(x.len(), c * h * w);
         let ck = c * k * k;
         let weight = MatRef::new(&self.weight, o, ck, ck);
-        let rows_per_strip = (STRIP_VALUES / (ck * w).max(1)).clamp(1, h);
+        let rows = rows_per_strip(ck, w, h);
         let strips: Vec<(usize, Vec<f32>)> = (0..h)
-            .step_by(rows_per_strip)
+            .step_by(rows)
             .collect::<Vec<_>>()
             .into_par_iter()
             .map(|y0| {
-                let y1 = (y0 + rows_per_strip).min(h);
+                let y1 = (y0 + rows).min(h);
                 let n = (y1 - y0) * w;
                 let mut out = vec![0.0f32; o * n];
                 if k == 1 {
@@ -111,41 +109,6 @@ impl Folded {
         }
         y
     }
-}
-
-/// The im2col columns of rows `y0..y1` of `x` (`[c, h, w]`) for a `k`×`k` kernel with zero
-/// padding `k / 2`: `[c·k·k, (y1 − y0)·w]`, row `(ch·k + dy)·k + dx` holding
-/// `x[ch][y + dy − k/2][x + dx − k/2]` (0 outside the image).
-fn unfold(x: &[f32], c: usize, h: usize, w: usize, k: usize, y0: usize, y1: usize) -> Vec<f32> {
-    let n = (y1 - y0) * w;
-    let p = k / 2;
-    let mut cols = vec![0.0f32; c * k * k * n];
-    for ch in 0..c {
-        let plane = &x[ch * h * w..(ch + 1) * h * w];
-        for dy in 0..k {
-            for dx in 0..k {
-                let row = &mut cols[((ch * k + dy) * k + dx) * n..][..n];
-                for y in y0..y1 {
-                    let sy = y as isize + dy as isize - p as isize;
-                    if sy < 0 || sy >= h as isize {
-                        continue;
-                    }
-                    let src = &plane[sy as usize * w..(sy as usize + 1) * w];
-                    let dst = &mut row[(y - y0) * w..(y - y0 + 1) * w];
-                    // dst[x] = src[x + dx − p] where that lies inside the row.
-                    let shift = dx as isize - p as isize;
-                    let (from, to) = if shift < 0 {
-                        (0usize, (shift.unsigned_abs()))
-                    } else {
-                        (shift as usize, 0usize)
-                    };
-                    let len = w - from.max(to);
-                    dst[to..to + len].copy_from_slice(&src[from..from + len]);
-                }
-            }
-        }
-    }
-    cols
 }
 
 /// 2×2 max pooling, stride 2: `[c, h, w]` → `[c, h/2, w/2]` (h and w even).
@@ -249,6 +212,7 @@ mod tests {
 
     use super::*;
     use crate::config::{SegInput, UNetConfig};
+    use ic_nn::ops::conv::STRIP_VALUES;
 
     /// A U-Net with every weight, bias and running statistic drawn at random (variances
     /// positive), so that folding the batch norms is exercised in full.

@@ -18,7 +18,6 @@ use crate::config::UNetConfig;
 pub struct Conv2d {
     pub(crate) weight: Tensor,
     pub(crate) bias: Option<Tensor>,
-    padding: usize,
 }
 
 impl Conv2d {
@@ -44,41 +43,16 @@ impl Conv2d {
         } else {
             None
         };
-        Ok(Conv2d {
-            weight,
-            bias,
-            padding: kernel / 2,
-        })
+        Ok(Conv2d { weight, bias })
     }
 
     /// `[B, C, H, W]` → `[B, O, H, W]` ("same" padding).
     ///
-    /// Computed as im2col + one matrix product rather than candle's `conv2d`: on the CPU,
-    /// candle's convolution backward goes through a direct `conv_transpose2d` that made a
-    /// training step of the `cpu` preset take ≈ 37 s at batch 8; the unfolded form back-
-    /// propagates through copies and a GEMM only.
+    /// [`ic_nn::ops::conv::conv2d_same`]: im2col + GEMM on strips, one fused op on the CPU
+    /// (candle's own `conv2d` backward goes through a direct `conv_transpose2d` that made a
+    /// training step of the `cpu` preset take ≈ 37 s at batch 8).
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let (b, c, h, w) = x.dims4()?;
-        let (o, _, kh, kw) = self.weight.dims4()?;
-        let y = if kh == 1 && kw == 1 {
-            let w2 = self.weight.reshape((o, c))?;
-            w2.broadcast_matmul(&x.reshape((b, c, h * w))?)?
-        } else {
-            let p = self.padding;
-            let xp = x.pad_with_zeros(2, p, p)?.pad_with_zeros(3, p, p)?;
-            let mut shifted = Vec::with_capacity(kh * kw);
-            for dy in 0..kh {
-                for dx in 0..kw {
-                    shifted.push(xp.narrow(2, dy, h)?.narrow(3, dx, w)?);
-                }
-            }
-            // [B, C, kh·kw, H, W] → [B, C·kh·kw, H·W], matching the weight's [O, C, kh, kw].
-            let cols = Tensor::stack(&shifted, 2)?.reshape((b, c * kh * kw, h * w))?;
-            self.weight
-                .reshape((o, c * kh * kw))?
-                .broadcast_matmul(&cols)?
-        };
-        let y = y.reshape((b, o, h, w))?;
+        let y = ic_nn::ops::conv::conv2d_same(x, &self.weight)?;
         match &self.bias {
             Some(b) => y.broadcast_add(&b.reshape((1, b.dim(0)?, 1, 1))?),
             None => Ok(y),
@@ -121,7 +95,7 @@ impl ConvBnRelu {
     }
 
     fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
-        self.bn.forward_t(&self.conv.forward(x)?, train)?.relu()
+        self.bn.forward_relu(&self.conv.forward(x)?, train)
     }
 }
 

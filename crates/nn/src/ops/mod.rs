@@ -9,6 +9,7 @@
 //! |---|---|
 //! | [`fastmath`] | branch-free `exp`, a checked strided wrapper of the `gemm` crate, micro-kernels for 8·k-wide products (packed panels × row tiles, rows × matrix) |
 //! | [`attention`] | fused multi-head attention (FlashAttention-style backward from saved log-sum-exps) |
+//! | [`conv`] | the 2-D "same" convolution of images (im2col + GEMM on strips) |
 //! | [`dense`] | `x·Wᵀ + b` (+ ReLU) and the 1×1 channel convolution |
 //! | [`norm`] | layer norm over the last dimension, batch norm + LeakyReLU over `[B, C, L]` |
 //! | [`softmax`] | softmax and log-softmax over the last dimension |
@@ -20,6 +21,7 @@
 //! multiply-add or not), and dispatched at run time by [`avx2_fma_dispatch!`].
 
 pub mod attention;
+pub mod conv;
 pub mod cpu;
 pub mod dense;
 pub mod fastmath;

@@ -44,7 +44,7 @@ pub fn layer_norm_reference(x: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Res
 pub type ChannelMoments = Vec<(f32, f32)>;
 
 /// `LeakyReLU(BN(x))` for `x` `[B, C, L]` (f32 on the CPU) with weight and bias `[C]` and
-/// negative slope `slope` (> 0), as one fused op (forward and backward one pass per channel).
+/// negative slope `slope` (≥ 0; 0 is the ReLU), as one fused op (forward and backward one pass per channel).
 ///
 /// With `running` = the (mean, variance) of each channel (inference) those normalise;
 /// without (training), the batch statistics over B·L values per channel (computed in f64,
@@ -411,7 +411,7 @@ mod tests {
 
     /// Output, input/γ/β gradients and running statistics of `LeakyReLU(BN(x))`, fused or from
     /// tensor ops, in training or inference mode.
-    fn run(fused: bool, train: bool) -> Vec<Vec<f32>> {
+    fn run(fused: bool, train: bool, slope: f32) -> Vec<Vec<f32>> {
         let dev = Device::Cpu;
         let varmap = VarMap::new();
         let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
@@ -432,10 +432,10 @@ mod tests {
             .unwrap();
         let g = Tensor::from_vec(values(3 * 5 * 7, 5), (3, 5, 7), &dev).unwrap();
         let y = if fused {
-            bnw.forward_leaky_relu(&x, train, 0.2).unwrap()
+            bnw.forward_leaky_relu(&x, train, slope).unwrap()
         } else {
             let t = bnw.forward_t(&x, train).unwrap();
-            t.maximum(&(&t * 0.2).unwrap()).unwrap()
+            t.maximum(&(&t * slope as f64).unwrap()).unwrap()
         };
         let grads = (&y * &g).unwrap().sum_all().unwrap().backward().unwrap();
         let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
@@ -451,13 +451,14 @@ mod tests {
 
     #[test]
     fn fused_batch_norm_leaky_relu_matches_tensor_ops() {
-        for train in [true, false] {
-            let (a, b) = (run(true, train), run(false, train));
+        // Slope 0 is the ReLU of the segmentation network's blocks.
+        for (train, slope) in [(true, 0.2), (false, 0.2), (true, 0.0), (false, 0.0)] {
+            let (a, b) = (run(true, train, slope), run(false, train, slope));
             for (i, (x, y)) in a.iter().zip(&b).enumerate() {
                 for (u, v) in x.iter().zip(y) {
                     assert!(
                         (u - v).abs() <= 1e-4 * v.abs().max(1.0),
-                        "train {train}, item {i}: {u} vs {v}"
+                        "train {train}, slope {slope}, item {i}: {u} vs {v}"
                     );
                 }
             }
