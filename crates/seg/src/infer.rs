@@ -152,6 +152,8 @@ pub struct FoldedUNet {
     down: Vec<(Folded, Folded)>,
     up: Vec<(Folded, Folded)>,
     head: Folded,
+    /// The centre-offset branch: its level, convolution and 1×1 head.
+    offsets: Option<(usize, Folded, Folded)>,
 }
 
 impl FoldedUNet {
@@ -164,6 +166,14 @@ impl FoldedUNet {
             down: net.down.iter().map(pair).collect::<Result<_>>()?,
             up: net.up.iter().map(pair).collect::<Result<_>>()?,
             head: Folded::conv(&net.head, None, false)?,
+            offsets: match &net.offsets {
+                Some(b) => Some((
+                    b.level,
+                    Folded::conv_bn_relu(&b.conv)?,
+                    Folded::conv(&b.head, None, false)?,
+                )),
+                None => None,
+            },
         })
     }
 
@@ -192,14 +202,35 @@ impl FoldedUNet {
             skips.push((x.clone(), c, hh, ww));
         }
         let (mut x, mut c, _, _) = skips.pop().expect("at least one level");
+        // The offset branch's output at its level: (values, level's height, width).
+        let mut branch = None;
+        let mut level = levels - 1;
         for (a, b) in &self.up {
+            if let Some((l, conv, head)) = &self.offsets
+                && *l == level
+            {
+                branch = Some((head.forward(&conv.forward(&x, hh, ww), hh, ww), hh, ww));
+            }
             let (skip, _, sh, sw) = skips.pop().expect("one skip per decoder level");
             let cat = upsample_concat(&x, c, &skip, sh, sw);
             x = b.forward(&a.forward(&cat, sh, sw), sh, sw);
             c = b.outputs;
             (hh, ww) = (sh, sw);
+            level -= 1;
         }
-        Ok(self.head.forward(&x, hh, ww))
+        let mut out = self.head.forward(&x, hh, ww);
+        if let Some((off, bh, bw)) = branch {
+            // Nearest up-sampling by 2^level, added to the head's offset maps (2 and 3).
+            let (fy, fx) = (hh / bh, ww / bw);
+            for ch in 0..2 {
+                let plane = &mut out[(2 + ch) * hh * ww..(3 + ch) * hh * ww];
+                let src = &off[ch * bh * bw..(ch + 1) * bh * bw];
+                for (i, v) in plane.iter_mut().enumerate() {
+                    *v += src[(i / ww / fy) * bw + (i % ww) / fx];
+                }
+            }
+        }
+        Ok(out)
     }
 }
 
@@ -217,6 +248,17 @@ mod tests {
     /// A U-Net with every weight, bias and running statistic drawn at random (variances
     /// positive), so that folding the batch norms is exercised in full.
     fn random_unet(channels: Vec<usize>, outputs: usize, input: SegInput, seed: u64) -> UNet {
+        random_unet_with(channels, outputs, input, 0, seed)
+    }
+
+    /// [`random_unet`] with a centre-offset branch on `offset_level` (0: none).
+    fn random_unet_with(
+        channels: Vec<usize>,
+        outputs: usize,
+        input: SegInput,
+        offset_level: usize,
+        seed: u64,
+    ) -> UNet {
         let cfg = UNetConfig {
             input_width: 40,
             input_height: 24,
@@ -224,6 +266,7 @@ mod tests {
             bn_momentum: 0.1,
             outputs,
             input,
+            offset_level,
         };
         let map = VarMap::new();
         let net = UNet::new(
@@ -252,13 +295,23 @@ mod tests {
 
     #[test]
     fn folded_inference_matches_the_tensor_forward() {
-        for (channels, outputs, kind, (h, w)) in [
-            (vec![8, 16, 32, 64], 2, SegInput::Depth, (24usize, 40usize)),
-            (vec![8, 16, 32, 64], 2, SegInput::DepthNormals, (24, 40)),
-            (vec![4, 8], 1, SegInput::Depth, (10, 6)),
-            (vec![3], 2, SegInput::DepthNormals, (5, 7)),
+        // (channels, outputs, offset branch level, input, size)
+        for (channels, outputs, level, kind, (h, w)) in [
+            (
+                vec![8, 16, 32, 64],
+                2,
+                0,
+                SegInput::Depth,
+                (24usize, 40usize),
+            ),
+            (vec![8, 16, 32, 64], 2, 0, SegInput::DepthNormals, (24, 40)),
+            (vec![4, 8], 1, 0, SegInput::Depth, (10, 6)),
+            (vec![3], 2, 0, SegInput::DepthNormals, (5, 7)),
+            (vec![8, 16, 32, 64], 4, 2, SegInput::Depth, (24, 40)),
+            (vec![8, 16, 32, 64], 4, 3, SegInput::Depth, (16, 24)),
+            (vec![4, 8], 4, 1, SegInput::Depth, (10, 6)),
         ] {
-            let net = random_unet(channels.clone(), outputs, kind, 7);
+            let net = random_unet_with(channels.clone(), outputs, kind, level, 7);
             let c = kind.channels();
             let mut rng = ChaCha8Rng::seed_from_u64(11);
             let input: Vec<f32> = (0..c * h * w)
@@ -284,7 +337,7 @@ mod tests {
                 .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
             assert!(
                 worst <= 1e-4 * scale.max(1.0),
-                "{channels:?}: worst difference {worst} (largest logit {scale})"
+                "{channels:?}, offset level {level}: worst difference {worst} (largest logit {scale})"
             );
         }
     }

@@ -116,13 +116,25 @@ impl DoubleConv {
     }
 }
 
-/// The U-Net. Input `[B, C, H, W]` with C = `cfg.input.channels()` (see [`crate::input`]), output logits `[B, outputs, H, W]`
-/// (object, then instance core when `outputs` = 2).
+/// The centre-offset branch of a four-output network with `offset_level` > 0: 3×3
+/// convolution + batch norm + ReLU, then a 1×1 convolution to (x, y), whose weights and bias
+/// start at zero (a network given the branch computes what it did before).
+#[derive(Clone, Debug)]
+pub(crate) struct OffsetBranch {
+    pub(crate) level: usize,
+    pub(crate) conv: ConvBnRelu,
+    pub(crate) head: Conv2d,
+}
+
+/// The U-Net. Input `[B, C, H, W]` with C = `cfg.input.channels()` (see [`crate::input`]),
+/// output logits `[B, outputs, H, W]` (object, then instance core when `outputs` ≥ 2, then
+/// the centre offsets x and y when `outputs` = 4; see [`UNetConfig`]).
 #[derive(Clone, Debug)]
 pub struct UNet {
     pub(crate) down: Vec<DoubleConv>,
     pub(crate) up: Vec<DoubleConv>,
     pub(crate) head: Conv2d,
+    pub(crate) offsets: Option<OffsetBranch>,
     cfg: UNetConfig,
 }
 
@@ -147,10 +159,25 @@ impl UNet {
                 m,
             )?);
         }
+        let offsets = if cfg.offset_level > 0 {
+            let (l, c) = (cfg.offset_level, ch[cfg.offset_level]);
+            let vb = vb.pp("offsets");
+            Some(OffsetBranch {
+                level: l,
+                conv: ConvBnRelu::new(vb.pp("conv"), c, c, m)?,
+                head: Conv2d {
+                    weight: vb.get_with_hints((2, c, 1, 1), "head.weight", Init::Const(0.0))?,
+                    bias: Some(vb.get_with_hints(2, "head.bias", Init::Const(0.0))?),
+                },
+            })
+        } else {
+            None
+        };
         Ok(UNet {
             down,
             up,
             head: Conv2d::new(vb.pp("head"), ch[0], cfg.outputs, 1, true)?,
+            offsets,
             cfg: cfg.clone(),
         })
     }
@@ -171,14 +198,33 @@ impl UNet {
             skips.push(h.clone());
         }
         let mut h = skips.pop().expect("at least one level");
+        // The features the offset branch reads: the bottleneck or a decoder level's output.
+        let mut level = self.down.len() - 1;
+        let mut branch_in = None;
         for block in &self.up {
+            if self.offsets.as_ref().is_some_and(|b| b.level == level) {
+                branch_in = Some(h.clone());
+            }
             let skip = skips.pop().expect("one skip per decoder level");
             let (_, _, sh, sw) = skip.dims4()?;
             let upsampled = upsample2(&h)?;
             debug_assert_eq!(upsampled.dims4()?.2, sh);
             debug_assert_eq!(upsampled.dims4()?.3, sw);
             h = block.forward_t(&Tensor::cat(&[&upsampled, &skip], 1)?, train)?;
+            level -= 1;
         }
-        self.head.forward(&h)
+        let logits = self.head.forward(&h)?;
+        match (&self.offsets, branch_in) {
+            (Some(b), Some(features)) => {
+                let mut off = b.head.forward(&b.conv.forward_t(&features, train)?)?;
+                for _ in 0..b.level {
+                    off = upsample2(&off)?;
+                }
+                let maps = logits.narrow(1, 0, 2)?;
+                let offsets = (logits.narrow(1, 2, 2)? + off)?;
+                Tensor::cat(&[&maps, &offsets], 1)
+            }
+            _ => Ok(logits),
+        }
     }
 }

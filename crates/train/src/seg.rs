@@ -83,9 +83,11 @@ impl Trainer<UNet> {
     /// per level ([`crate::widen`]: the copies of a channel share its weights, so the
     /// widened network computes what the checkpoint did), fewer outputs (one or two, where
     /// this one has two or four) or fewer inputs (depth alone, where this one also sees surface normals), or
-    /// any of these together (the input size may differ: the network is fully
-    /// convolutional). Every weight is copied; a one-output head's object output also starts
-    /// the core map; new centre-offset maps start at zero; the first convolution's weights of
+    /// no centre-offset branch (where this one has one, `UNetConfig::offset_level`), or any of
+    /// these together (the input size may differ: the network is fully convolutional). Every
+    /// weight is copied; a one-output head's object output also starts the core map; new
+    /// centre-offset maps start at zero, and so does a new offset branch's 1×1 head (its
+    /// convolution keeps its seeded initialisation); the first convolution's weights of
     /// the new input channels start at zero, so the widened network computes what the
     /// checkpoint did until training teaches it to use them. Errors name `path` and the
     /// tensor that does not fit.
@@ -96,6 +98,15 @@ impl Trainer<UNet> {
             message,
         };
         let (from, to) = (&config.net, &self.config.net);
+        // A network given the offset branch keeps the branch's fresh weights (its 1×1 head at
+        // zero, so the offsets are the checkpoint's); a branch at another level is refused.
+        let new_branch = from.offset_level == 0 && to.offset_level > 0;
+        if from.offset_level != to.offset_level && !new_branch {
+            return Err(bad(format!(
+                "cannot move the offset branch from level {} to level {}",
+                from.offset_level, to.offset_level
+            )));
+        }
         // 1 → 2 or 4 outputs: the object map also starts the core map; 2 → 4: the offset maps
         // start at zero (every pixel its own centre).
         let widen_head = [(1, 2), (1, 4), (2, 4)].contains(&(from.outputs, to.outputs));
@@ -120,7 +131,11 @@ impl Trainer<UNet> {
             .lock()
             .unwrap_or_else(|e| e.into_inner());
         if from.channels != to.channels {
-            let names: Vec<String> = data.keys().cloned().collect();
+            let names: Vec<String> = data
+                .keys()
+                .filter(|n| !(new_branch && n.starts_with("offsets.")))
+                .cloned()
+                .collect();
             tensors = crate::widen::widen_unet(
                 &tensors,
                 &names,
@@ -138,6 +153,9 @@ impl Trainer<UNet> {
             );
         }
         for (name, var) in data.iter() {
+            if new_branch && name.starts_with("offsets.") {
+                continue;
+            }
             let t = tensors
                 .get(name)
                 .ok_or_else(|| bad(format!("missing tensor {name}")))?;
@@ -263,8 +281,9 @@ impl Trainer<UNet> {
 
 #[derive(clap::Args)]
 pub struct TrainArgs {
-    /// `cpu`, `clutter`, `clutter-wide` or `clutter-offsets` (with `--scenes clutter`), or
-    /// `tiny` / `tiny-clutter` / `tiny-clutter-wide` / `tiny-clutter-offsets` (smoke tests).
+    /// `cpu`, `clutter`, `clutter-wide`, `clutter-offsets` or `clutter-offsets-coarse` (with
+    /// `--scenes clutter`), or `tiny` / `tiny-clutter` / `tiny-clutter-wide` /
+    /// `tiny-clutter-offsets` / `tiny-clutter-offsets-coarse` (smoke tests).
     #[arg(long, default_value = "cpu")]
     pub preset: String,
     /// `room` (the paper's: one object in the cube room; `--objects` is a folder of meshes
@@ -508,6 +527,7 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
     };
     let widen = init_config.as_ref().is_some_and(|c| {
         c.net.outputs < preset.net.outputs
+            || (c.net.offset_level == 0 && preset.net.offset_level > 0)
             || input.is_some_and(|i| i != c.net.input)
             || wider_preset(c)
     });

@@ -895,3 +895,58 @@ fn a_two_output_checkpoint_starts_a_four_output_network_with_the_same_maps_and_z
     assert_eq!(trained.net.outputs, 4);
     assert!(trained.post.centres.is_some());
 }
+
+#[test]
+fn a_four_output_checkpoint_starts_an_offset_branch_network_computing_the_same_and_trains_the_branch()
+ {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("four");
+    let with_preset = |preset: &str, out: &Path| ic_train::seg::TrainArgs {
+        preset: preset.into(),
+        ..clutter_args(out, 2)
+    };
+    ic_train::seg::train(&with_preset("tiny-clutter-offsets", &run), control(never())).unwrap();
+    let init = run.join("final.safetensors");
+    let (depth, k) = box_on_tilted_floor();
+    let p = |s: &ic_seg::Segmenter| s.probabilities_small(&[(&depth, &k)]).unwrap().remove(0);
+    let before = p(&ic_seg::Segmenter::load(&init).unwrap());
+    assert!(before.iter().skip(before.len() / 2).any(|&o| o != 0.0));
+    let coarse = with_preset("tiny-clutter-offsets-coarse", &run);
+    let t = ic_train::seg::make_trainer(&coarse, &dir.path().join("none"), Some(&init)).unwrap();
+    assert_eq!(t.config().net.offset_level, 1);
+    let after = p(&t.segmenter());
+    assert_eq!(after.len(), before.len());
+    for (x, y) in before.iter().zip(&after) {
+        assert!((x - y).abs() < 1e-6, "{x} vs {y}");
+    }
+    // Trained, the branch's head leaves zero and the checkpoint keeps the branch.
+    let out = dir.path().join("coarse");
+    let args = ic_train::seg::TrainArgs {
+        init: Some(init.clone()),
+        ..with_preset("tiny-clutter-offsets-coarse", &out)
+    };
+    ic_train::seg::train(&args, control(never())).unwrap();
+    let file = out.join("final.safetensors");
+    assert_eq!(
+        ic_seg::checkpoint::read_config(&file)
+            .unwrap()
+            .net
+            .offset_level,
+        1
+    );
+    let tensors = candle_core::safetensors::load(&file, &candle_core::Device::Cpu).unwrap();
+    let head = tensors["offsets.head.weight"]
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
+    assert!(head.iter().any(|&w| w != 0.0), "the branch did not train");
+    // A network without the branch does not take one that has it, and says which file.
+    let plain = with_preset("tiny-clutter-offsets", &run);
+    let mut t = ic_train::seg::make_trainer(&plain, &dir.path().join("none2"), None).unwrap();
+    let err = t.load_widening(&file).unwrap_err().to_string();
+    assert!(
+        err.contains("final.safetensors") && err.contains("offset branch"),
+        "{err}"
+    );
+}
