@@ -10,9 +10,7 @@
 //! `cpu` preset's 160×120 for 2.6 times the pixels.
 
 use candle_core::Result;
-use ic_nn::ops::conv::{rows_per_strip, unfold};
-use ic_nn::ops::fastmath::matmul;
-use ic_nn::ops::{MatMut, MatRef};
+use ic_nn::ops::conv::{ConvShape, convolve};
 use rayon::prelude::*;
 
 use crate::unet::{Conv2d, ConvBnRelu, UNet};
@@ -60,53 +58,28 @@ impl Folded {
         Self::conv(&block.conv, Some(block.bn.inference_affine()?), true)
     }
 
-    /// `x`: `[inputs, h, w]` → `[outputs, h, w]` ("same" zero padding).
+    /// `x`: `[inputs, h, w]` → `[outputs, h, w]` ("same" zero padding): the strips of
+    /// [`ic_nn::ops::conv::convolve`], then bias and ReLU in place.
     fn forward(&self, x: &[f32], h: usize, w: usize) -> Vec<f32> {
-        let (c, o, k) = (self.inputs, self.outputs, self.kernel);
-        debug_assert_eq!(x.len(), c * h * w);
-        let ck = c * k * k;
-        let weight = MatRef::new(&self.weight, o, ck, ck);
-        let rows = rows_per_strip(ck, w, h);
-        let strips: Vec<(usize, Vec<f32>)> = (0..h)
-            .step_by(rows)
-            .collect::<Vec<_>>()
-            .into_par_iter()
-            .map(|y0| {
-                let y1 = (y0 + rows).min(h);
-                let n = (y1 - y0) * w;
-                let mut out = vec![0.0f32; o * n];
-                if k == 1 {
-                    // The strip's pixels of every channel: a strided view of x.
-                    let cols = MatRef::strided(&x[y0 * w..], c, n, h * w, 1);
-                    matmul(weight, cols, MatMut::new(&mut out, o, n, n), false);
+        debug_assert_eq!(x.len(), self.inputs * h * w);
+        let shape = ConvShape {
+            batch: 1,
+            inputs: self.inputs,
+            outputs: self.outputs,
+            height: h,
+            width: w,
+            kernel: self.kernel,
+        };
+        let mut y = convolve(x, &self.weight, shape);
+        y.par_chunks_mut((h * w).max(1))
+            .zip(&self.bias)
+            .for_each(|(plane, &b)| {
+                if self.relu {
+                    plane.iter_mut().for_each(|v| *v = (*v + b).max(0.0));
                 } else {
-                    let cols = unfold(x, c, h, w, k, y0, y1);
-                    matmul(
-                        weight,
-                        MatRef::new(&cols, ck, n, n),
-                        MatMut::new(&mut out, o, n, n),
-                        false,
-                    );
+                    plane.iter_mut().for_each(|v| *v += b);
                 }
-                for (j, row) in out.chunks_mut(n).enumerate() {
-                    let b = self.bias[j];
-                    if self.relu {
-                        row.iter_mut().for_each(|v| *v = (*v + b).max(0.0));
-                    } else {
-                        row.iter_mut().for_each(|v| *v += b);
-                    }
-                }
-                (y0, out)
-            })
-            .collect();
-        let mut y = vec![0.0f32; o * h * w];
-        for (y0, out) in strips {
-            let n = out.len() / o;
-            for j in 0..o {
-                y[j * h * w + y0 * w..j * h * w + y0 * w + n]
-                    .copy_from_slice(&out[j * n..(j + 1) * n]);
-            }
-        }
+            });
         y
     }
 }
@@ -243,7 +216,7 @@ mod tests {
 
     use super::*;
     use crate::config::{SegInput, UNetConfig};
-    use ic_nn::ops::conv::STRIP_VALUES;
+    use ic_nn::ops::conv::{STRIP_VALUES, unfold};
 
     /// A U-Net with every weight, bias and running statistic drawn at random (variances
     /// positive), so that folding the batch norms is exercised in full.

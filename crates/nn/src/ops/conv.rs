@@ -111,60 +111,84 @@ pub fn rows_per_strip(ck: usize, w: usize, h: usize) -> usize {
     (STRIP_VALUES / (ck * w).max(1)).clamp(1, h.max(1))
 }
 
-/// Shapes of one convolution: batch, input and output channels, height, width, kernel.
+/// The shape of one convolution: `batch` images of `inputs` channels, `height` × `width`
+/// pixels, to `outputs` channels, with a `kernel` × `kernel` kernel (odd).
 #[derive(Clone, Copy, Debug)]
-struct Dims {
-    b: usize,
-    c: usize,
-    o: usize,
-    h: usize,
-    w: usize,
-    k: usize,
+pub struct ConvShape {
+    pub batch: usize,
+    pub inputs: usize,
+    pub outputs: usize,
+    pub height: usize,
+    pub width: usize,
+    pub kernel: usize,
 }
 
-impl Dims {
+impl ConvShape {
+    /// Rows of the weight's `[outputs, inputs·k·k]` view.
+    fn unfolded(&self) -> usize {
+        self.inputs * self.kernel * self.kernel
+    }
+
     /// Every (image, first row of a strip) of the batch.
     fn tasks(&self) -> Vec<(usize, usize)> {
-        let rows = rows_per_strip(self.c * self.k * self.k, self.w, self.h);
-        (0..self.b)
-            .flat_map(|bi| (0..self.h).step_by(rows).map(move |y0| (bi, y0)))
+        let rows = rows_per_strip(self.unfolded(), self.width, self.height);
+        (0..self.batch)
+            .flat_map(|bi| (0..self.height).step_by(rows).map(move |y0| (bi, y0)))
             .collect()
     }
 
+    /// The end of the strip starting at row `y0`.
     fn strip_end(&self, y0: usize) -> usize {
-        (y0 + rows_per_strip(self.c * self.k * self.k, self.w, self.h)).min(self.h)
+        (y0 + rows_per_strip(self.unfolded(), self.width, self.height)).min(self.height)
+    }
+
+    /// Image `bi` of `x` (`[batch, channels, height, width]`).
+    fn image<'a>(&self, x: &'a [f32], channels: usize, bi: usize) -> &'a [f32] {
+        let plane = channels * self.height * self.width;
+        &x[bi * plane..(bi + 1) * plane]
+    }
+
+    /// `f` of the im2col columns `[inputs·k·k, (y1 − y0)·width]` of rows `y0..y1` of `image`
+    /// (`[inputs, height, width]`): a strided view of the image for a 1×1 kernel, the
+    /// [`unfold`]ed copy otherwise.
+    fn with_columns<R>(
+        &self,
+        image: &[f32],
+        y0: usize,
+        y1: usize,
+        f: impl FnOnce(MatRef) -> R,
+    ) -> R {
+        let (c, h, w, k) = (self.inputs, self.height, self.width, self.kernel);
+        let n = (y1 - y0) * w;
+        if k == 1 {
+            f(MatRef::strided(&image[y0 * w..], c, n, h * w, 1))
+        } else {
+            let cols = unfold(image, c, h, w, k, y0, y1);
+            f(MatRef::new(&cols, self.unfolded(), n, n))
+        }
     }
 }
 
-/// `[B, O, H, W]` = conv(`x` `[B, C, H, W]`, `weight` `[O, C·k·k]`), strips in parallel.
-fn convolve(x: &[f32], weight: &[f32], d: Dims) -> Vec<f32> {
-    let (c, o, h, w, k) = (d.c, d.o, d.h, d.w, d.k);
-    let ck = c * k * k;
-    let wm = MatRef::new(weight, o, ck, ck);
+/// `y` `[batch, outputs, height, width]` = conv(`x` `[batch, inputs, height, width]`,
+/// `weight` `[outputs, inputs·k·k]`), the function of [`conv2d_same`] on plain slices: the
+/// strips of every image in parallel (what the segmentation network's folded inference runs).
+pub fn convolve(x: &[f32], weight: &[f32], d: ConvShape) -> Vec<f32> {
+    let (o, h, w) = (d.outputs, d.height, d.width);
+    let wm = MatRef::new(weight, o, d.unfolded(), d.unfolded());
     let strips: Vec<((usize, usize), Vec<f32>)> = d
         .tasks()
         .into_par_iter()
         .map(|(bi, y0)| {
             let y1 = d.strip_end(y0);
             let n = (y1 - y0) * w;
-            let image = &x[bi * c * h * w..(bi + 1) * c * h * w];
             let mut out = vec![0.0f32; o * n];
-            if k == 1 {
-                let cols = MatRef::strided(&image[y0 * w..], c, n, h * w, 1);
-                matmul(wm, cols, MatMut::new(&mut out, o, n, n), false);
-            } else {
-                let cols = unfold(image, c, h, w, k, y0, y1);
-                matmul(
-                    wm,
-                    MatRef::new(&cols, ck, n, n),
-                    MatMut::new(&mut out, o, n, n),
-                    false,
-                );
-            }
+            d.with_columns(d.image(x, d.inputs, bi), y0, y1, |cols| {
+                matmul(wm, cols, MatMut::new(&mut out, o, n, n), false)
+            });
             ((bi, y0), out)
         })
         .collect();
-    let mut y = vec![0.0f32; d.b * o * h * w];
+    let mut y = vec![0.0f32; d.batch * o * h * w];
     for ((bi, y0), out) in strips {
         let n = out.len() / o.max(1);
         for j in 0..o {
@@ -177,26 +201,19 @@ fn convolve(x: &[f32], weight: &[f32], d: Dims) -> Vec<f32> {
 
 /// `dW` `[O, C·k·k]` = Σ over images and pixels of `g` `[B, O, H, W]` times the im2col columns
 /// of `x`: per strip in parallel, the partial sums added in strip order (deterministic).
-fn weight_gradient(x: &[f32], g: &[f32], d: Dims) -> Vec<f32> {
-    let (c, o, h, w, k) = (d.c, d.o, d.h, d.w, d.k);
-    let ck = c * k * k;
+fn weight_gradient(x: &[f32], g: &[f32], d: ConvShape) -> Vec<f32> {
+    let (o, ck, w) = (d.outputs, d.unfolded(), d.width);
     let partials: Vec<Vec<f32>> = d
         .tasks()
         .into_par_iter()
         .map(|(bi, y0)| {
             let y1 = d.strip_end(y0);
             let n = (y1 - y0) * w;
-            let image = &x[bi * c * h * w..(bi + 1) * c * h * w];
-            let gs = MatRef::strided(&g[bi * o * h * w + y0 * w..], o, n, h * w, 1);
+            let gs = MatRef::strided(&d.image(g, o, bi)[y0 * w..], o, n, d.height * w, 1);
             let mut dw = vec![0.0f32; o * ck];
-            let dst = MatMut::new(&mut dw, o, ck, ck);
-            if k == 1 {
-                let cols = MatRef::strided(&image[y0 * w..], c, n, h * w, 1);
-                matmul(gs, cols.t(), dst, false);
-            } else {
-                let cols = unfold(image, c, h, w, k, y0, y1);
-                matmul(gs, MatRef::new(&cols, ck, n, n).t(), dst, false);
-            }
+            d.with_columns(d.image(x, d.inputs, bi), y0, y1, |cols| {
+                matmul(gs, cols.t(), MatMut::new(&mut dw, o, ck, ck), false)
+            });
             dw
         })
         .collect();
@@ -245,7 +262,15 @@ impl CustomOp2 for ConvSame {
         let (o, _, k, _) = l2.shape().dims4()?;
         let x = f32_slice(s1, l1, "conv2d x")?;
         let weight = f32_slice(s2, l2, "conv2d weight")?;
-        let y = convolve(x, weight, Dims { b, c, o, h, w, k });
+        let shape = ConvShape {
+            batch: b,
+            inputs: c,
+            outputs: o,
+            height: h,
+            width: w,
+            kernel: k,
+        };
+        let y = convolve(x, weight, shape);
         Ok((CpuStorage::F32(y), Shape::from((b, o, h, w))))
     }
 
@@ -259,27 +284,21 @@ impl CustomOp2 for ConvSame {
         let (b, c, h, wd) = x.dims4()?;
         let (o, _, k, _) = w.dims4()?;
         let (xv, wv, gv) = (to_f32_vec(x)?, to_f32_vec(w)?, to_f32_vec(grad)?);
-        let back = Dims {
-            b,
-            c: o,
-            o: c,
-            h,
-            w: wd,
-            k,
+        let shape = ConvShape {
+            batch: b,
+            inputs: c,
+            outputs: o,
+            height: h,
+            width: wd,
+            kernel: k,
+        };
+        let back = ConvShape {
+            inputs: o,
+            outputs: c,
+            ..shape
         };
         let dx = convolve(&gv, &flipped(&wv, o, c, k), back);
-        let dw = weight_gradient(
-            &xv,
-            &gv,
-            Dims {
-                b,
-                c,
-                o,
-                h,
-                w: wd,
-                k,
-            },
-        );
+        let dw = weight_gradient(&xv, &gv, shape);
         let dev = x.device();
         Ok((
             Some(Tensor::from_vec(dx, (b, c, h, wd), dev)?),
@@ -291,16 +310,8 @@ impl CustomOp2 for ConvSame {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ops::test_values as values;
     use candle_core::{Device, Var};
-
-    fn values(n: usize, seed: u32) -> Vec<f32> {
-        (0..n)
-            .map(|i| {
-                ((i as u32).wrapping_mul(2_654_435_761).wrapping_add(seed) % 1000) as f32 / 250.0
-                    - 2.0
-            })
-            .collect()
-    }
 
     /// Output and the input and weight gradients of `Σ y ∘ r` (`r` fixed values), fused or
     /// from tensor ops.

@@ -32,6 +32,17 @@ pub mod softmax;
 
 pub use mat::{MatMut, MatRef};
 
+/// `n` deterministic values in [−2, 2) (a multiplicative hash of the index and `seed`): the
+/// inputs of the kernels' oracle tests.
+#[cfg(test)]
+pub(crate) fn test_values(n: usize, seed: u32) -> Vec<f32> {
+    (0..n)
+        .map(|i| {
+            ((i as u32).wrapping_mul(2_654_435_761).wrapping_add(seed) % 1000) as f32 / 250.0 - 2.0
+        })
+        .collect()
+}
+
 /// Whether the CPU has AVX2 and FMA (the kernels then run their `target_feature` versions).
 /// `std` caches the detection, so this is a load and a test after the first call.
 #[inline]

@@ -400,14 +400,7 @@ mod tests {
     use candle_core::{DType, Device, Var};
     use candle_nn::{VarBuilder, VarMap};
 
-    fn values(n: usize, seed: u32) -> Vec<f32> {
-        (0..n)
-            .map(|i| {
-                ((i as u32).wrapping_mul(2_654_435_761).wrapping_add(seed) % 1000) as f32 / 250.0
-                    - 2.0
-            })
-            .collect()
-    }
+    use crate::ops::test_values as values;
 
     /// Output, input/γ/β gradients and running statistics of `LeakyReLU(BN(x))`, fused or from
     /// tensor ops, in training or inference mode.
