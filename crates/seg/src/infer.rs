@@ -1,13 +1,14 @@
 //! The U-Net's inference on the CPU without candle's tensor ops: batch norm folded into the
 //! convolutions, each 3×3 convolution as im2col + GEMM on horizontal strips of the image (so
-//! the unfolded columns stay in cache), bias and ReLU applied in place.
+//! the unfolded columns stay in cache; the strip loop is [`ic_nn::ops::conv::convolve`], the
+//! one training runs), bias and ReLU applied in place.
 //!
 //! The same function as [`UNet::forward_t`] with `train` false (its oracle test:
-//! `folded_inference_matches_the_tensor_forward`), for one image at a time. The tensor form
-//! allocates and traverses a full-image tensor per op (padding, nine shifted copies, their
-//! stack, the product, the batch norm's multiply and add, the ReLU, the concatenation); at the
-//! clutter preset's 256×192 input that made the network take about five times the time of the
-//! `cpu` preset's 160×120 for 2.6 times the pixels.
+//! `folded_inference_matches_the_tensor_forward`), for one image at a time. The tensor form,
+//! built for training, still allocates and traverses a full-image tensor per batch norm,
+//! bias, pooling, up-sampling and concatenation, and gets no folding; before its convolutions
+//! were fused, the clutter network's 256×192 input took about five times the time of the
+//! `cpu` preset's 160×120 for 2.6 times the pixels through it.
 
 use candle_core::Result;
 use ic_nn::ops::conv::{ConvShape, convolve};

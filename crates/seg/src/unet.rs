@@ -198,12 +198,12 @@ impl UNet {
             skips.push(h.clone());
         }
         let mut h = skips.pop().expect("at least one level");
-        // The features the offset branch reads: the bottleneck or a decoder level's output.
+        // The offset branch reads the bottleneck or a decoder level's output.
         let mut level = self.down.len() - 1;
-        let mut branch_in = None;
+        let mut branch = None;
         for block in &self.up {
-            if self.offsets.as_ref().is_some_and(|b| b.level == level) {
-                branch_in = Some(h.clone());
+            if let Some(b) = self.offsets.as_ref().filter(|b| b.level == level) {
+                branch = Some(b.head.forward(&b.conv.forward_t(&h, train)?)?);
             }
             let skip = skips.pop().expect("one skip per decoder level");
             let (_, _, sh, sw) = skip.dims4()?;
@@ -214,17 +214,17 @@ impl UNet {
             level -= 1;
         }
         let logits = self.head.forward(&h)?;
-        match (&self.offsets, branch_in) {
-            (Some(b), Some(features)) => {
-                let mut off = b.head.forward(&b.conv.forward_t(&features, train)?)?;
-                for _ in 0..b.level {
+        match branch {
+            Some(mut off) => {
+                // Nearest up-sampling by 2^level, added to the head's offset maps (2 and 3).
+                for _ in 0..self.cfg.offset_level {
                     off = upsample2(&off)?;
                 }
                 let maps = logits.narrow(1, 0, 2)?;
                 let offsets = (logits.narrow(1, 2, 2)? + off)?;
                 Tensor::cat(&[&maps, &offsets], 1)
             }
-            _ => Ok(logits),
+            None => Ok(logits),
         }
     }
 }

@@ -101,6 +101,7 @@ impl Trainer<UNet> {
         // A network given the offset branch keeps the branch's fresh weights (its 1×1 head at
         // zero, so the offsets are the checkpoint's); a branch at another level is refused.
         let new_branch = from.offset_level == 0 && to.offset_level > 0;
+        let fresh = |name: &str| new_branch && name.starts_with("offsets.");
         if from.offset_level != to.offset_level && !new_branch {
             return Err(bad(format!(
                 "cannot move the offset branch from level {} to level {}",
@@ -131,11 +132,7 @@ impl Trainer<UNet> {
             .lock()
             .unwrap_or_else(|e| e.into_inner());
         if from.channels != to.channels {
-            let names: Vec<String> = data
-                .keys()
-                .filter(|n| !(new_branch && n.starts_with("offsets.")))
-                .cloned()
-                .collect();
+            let names: Vec<String> = data.keys().filter(|n| !fresh(n)).cloned().collect();
             tensors = crate::widen::widen_unet(
                 &tensors,
                 &names,
@@ -153,7 +150,7 @@ impl Trainer<UNet> {
             );
         }
         for (name, var) in data.iter() {
-            if new_branch && name.starts_with("offsets.") {
+            if fresh(name) {
                 continue;
             }
             let t = tensors
