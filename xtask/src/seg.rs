@@ -79,8 +79,12 @@ pub struct PostArgs {
     /// Four-output networks: the least share of a seed's pixels in each part of a cut.
     #[arg(long)]
     centre_min_share: Option<f32>,
+    /// Four-output networks: network pixels added in quadrature to the spread both vote rules
+    /// compare with (votes agreeing to within it are one centre).
+    #[arg(long)]
+    centre_spread_floor: Option<f32>,
     /// Four-output networks: ignore the centre offsets (the instances of the cores alone).
-    #[arg(long, conflicts_with_all = ["centre_split", "centre_merge", "centre_min_share"])]
+    #[arg(long, conflicts_with_all = ["centre_split", "centre_merge", "centre_min_share", "centre_spread_floor"])]
     no_centres: bool,
 }
 
@@ -125,10 +129,11 @@ pub fn set_post(args: PostArgs) -> Result<()> {
     } else if args.centre_split.is_some()
         || args.centre_merge.is_some()
         || args.centre_min_share.is_some()
+        || args.centre_spread_floor.is_some()
     {
         if !cfg.net.has_offsets() {
             anyhow::bail!(
-                "{}: --centre-split/--centre-merge/--centre-min-share need a four-output network (this one has {})",
+                "{}: --centre-split/--centre-merge/--centre-min-share/--centre-spread-floor need a four-output network (this one has {})",
                 args.model.display(),
                 cfg.net.outputs
             );
@@ -142,6 +147,9 @@ pub fn set_post(args: PostArgs) -> Result<()> {
         }
         if let Some(v) = args.centre_min_share {
             c.min_share = v;
+        }
+        if let Some(v) = args.centre_spread_floor {
+            c.spread_floor = v;
         }
     }
     cfg.validate()?;

@@ -29,6 +29,17 @@ pub struct CentreConfig {
     pub merge: f32,
     /// See `merge`.
     pub min_contact: usize,
+    /// Network pixels added (in quadrature) to both rules' spread √(s₁² + s₂²): the votes
+    /// do not resolve distances below the network's pixel, so votes that agree to within it
+    /// are one centre whatever their spread. Without it, near-perfect votes (spread ≈ 0) cut
+    /// an object at any rounding difference and never join its pieces. Files without it get
+    /// the default.
+    #[serde(default = "default_spread_floor")]
+    pub spread_floor: f32,
+}
+
+fn default_spread_floor() -> f32 {
+    1.0
 }
 
 impl Default for CentreConfig {
@@ -38,6 +49,7 @@ impl Default for CentreConfig {
             min_share: 0.15,
             merge: 1.0,
             min_contact: 3,
+            spread_floor: default_spread_floor(),
         }
     }
 }
@@ -45,10 +57,15 @@ impl Default for CentreConfig {
 impl CentreConfig {
     pub fn validate(&self) -> Result<()> {
         let ok = |v: f32| v.is_finite() && v >= 0.0;
-        if !(ok(self.split) && ok(self.merge) && (0.0..0.5).contains(&self.min_share)) {
+        if !(ok(self.split)
+            && ok(self.merge)
+            && ok(self.spread_floor)
+            && (0.0..0.5).contains(&self.min_share))
+        {
             return Err(SegError::Config(format!(
-                "centres: split {} and merge {} must be finite and not negative, min_share {} in [0, 0.5)",
-                self.split, self.merge, self.min_share
+                "centres: split {}, merge {} and spread_floor {} must be finite and not negative, \
+                 min_share {} in [0, 0.5)",
+                self.split, self.merge, self.spread_floor, self.min_share
             )));
         }
         Ok(())
@@ -61,15 +78,26 @@ pub struct CentreVotes {
     pub width: u32,
     pub x: Vec<f32>,
     pub y: Vec<f32>,
+    /// One network pixel, in pixels of this map: the finest distance the votes resolve.
+    pub cell: f32,
 }
 
 impl CentreVotes {
     /// Votes from offsets at the depth map's resolution (`dx`, `dy`, row-major `width` wide),
-    /// each in units of `scale_x` / `scale_y` pixels.
-    pub fn from_offsets(dx: &[f32], dy: &[f32], width: u32, scale_x: f32, scale_y: f32) -> Self {
+    /// each in units of `scale_x` / `scale_y` pixels, from a network whose pixel is `cell`
+    /// pixels of this map.
+    pub fn from_offsets(
+        dx: &[f32],
+        dy: &[f32],
+        width: u32,
+        scale_x: f32,
+        scale_y: f32,
+        cell: f32,
+    ) -> Self {
         let w = width as usize;
         CentreVotes {
             width,
+            cell,
             x: dx
                 .iter()
                 .enumerate()
@@ -99,6 +127,12 @@ impl CentreVotes {
         let s = pixels.iter().map(|&i| dist2(self.at(i), c)).sum::<f64>() / n;
         (c, s.sqrt())
     }
+
+    /// The spread two groups of votes are judged by: √(s₁² + s₂² + (floor · cell)²).
+    fn joint_spread(&self, s1: f64, s2: f64, cfg: &CentreConfig) -> f64 {
+        let floor = cfg.spread_floor as f64 * self.cell as f64;
+        (s1 * s1 + s2 * s2 + floor * floor).sqrt()
+    }
 }
 
 fn dist2(a: [f64; 2], b: [f64; 2]) -> f64 {
@@ -125,7 +159,7 @@ pub fn cut(
         match halves {
             Some((a, b)) if a.len().min(b.len()) >= least(part.len()) => {
                 let ((ca, sa), (cb, sb)) = (votes.centre(&a), votes.centre(&b));
-                if dist2(ca, cb).sqrt() > cfg.split as f64 * (sa * sa + sb * sb).sqrt() {
+                if dist2(ca, cb).sqrt() > cfg.split as f64 * votes.joint_spread(sa, sb, cfg) {
                     todo.push((a, depth + 1));
                     todo.push((b, depth + 1));
                 } else {
@@ -256,7 +290,7 @@ pub fn merge_pieces(
             continue;
         }
         let ((ca, sa), (cb, sb)) = (stats[a as usize], stats[b as usize]);
-        if dist2(ca, cb).sqrt() < cfg.merge as f64 * (sa * sa + sb * sb).sqrt() {
+        if dist2(ca, cb).sqrt() < cfg.merge as f64 * votes.joint_spread(sa, sb, cfg) {
             let (ra, rb) = (root(&mut parent, a), root(&mut parent, b));
             if ra != rb {
                 parent[ra.max(rb) as usize] = ra.min(rb);
@@ -293,6 +327,7 @@ mod tests {
             width: w as u32,
             x,
             y,
+            cell: 1.0,
         }
     }
 
@@ -352,6 +387,7 @@ mod tests {
                 .map(|i| if i % w >= 20 { 25.0 } else { 10.0 } + jitter(i))
                 .collect(),
             y: vec![3.0; w * h],
+            cell: 1.0,
         };
         merge_pieces(&mut label, &votes, &CentreConfig::default(), |_, _| true);
         assert!(
@@ -369,5 +405,45 @@ mod tests {
                 .enumerate()
                 .all(|(i, &l)| l == ((i % w) / 10) as u32)
         );
+    }
+
+    #[test]
+    fn votes_that_agree_to_within_the_network_pixel_neither_cut_an_object_nor_keep_its_pieces_apart()
+     {
+        // Exact votes (a perfect network): the two halves differ only by rounding, so their
+        // spread is ≈ 0 and the relative rule alone cuts them and never joins them.
+        let (w, h) = (20, 10);
+        let votes = CentreVotes {
+            width: w as u32,
+            x: (0..w * h)
+                .map(|i| 10.0 + if i % w < w / 2 { 0.0 } else { 0.01 })
+                .collect(),
+            y: vec![5.0; w * h],
+            cell: 2.5,
+        };
+        let all: Vec<usize> = (0..w * h).collect();
+        let bare = CentreConfig {
+            spread_floor: 0.0,
+            ..CentreConfig::default()
+        };
+        assert_eq!(cut(&all, &votes, &bare, 5).len(), 2);
+        assert_eq!(
+            cut(&all, &votes, &CentreConfig::default(), 5),
+            vec![all.clone()]
+        );
+        let halves = || -> Vec<u32> { (0..w * h).map(|i| ((i % w) / 10) as u32).collect() };
+        let mut label = halves();
+        merge_pieces(&mut label, &votes, &bare, |_, _| true);
+        assert_eq!(label, halves());
+        merge_pieces(&mut label, &votes, &CentreConfig::default(), |_, _| true);
+        assert!(label.iter().all(|&l| l == 0));
+        // Two objects' exact centres 4 network pixels apart are still cut.
+        let two = CentreVotes {
+            x: (0..w * h)
+                .map(|i| if i % w < w / 2 { 5.0 } else { 15.0 })
+                .collect(),
+            ..votes
+        };
+        assert_eq!(cut(&all, &two, &CentreConfig::default(), 5).len(), 2);
     }
 }

@@ -201,6 +201,7 @@ impl Segmenter {
             depth.width,
             unit * depth.width as f32 / net.input_width as f32,
             unit * depth.height as f32 / net.input_height as f32,
+            depth.width as f32 / net.input_width as f32,
         ))
     }
 
@@ -236,16 +237,46 @@ impl Segmenter {
         intrinsics.validate()?;
         depth.check_size(intrinsics.width, intrinsics.height)?;
         let small = self.probabilities_small(&[(depth, intrinsics)])?.remove(0);
-        let object = self.full_resolution(&small, 0, depth);
+        self.instances_from_small(&small, depth, intrinsics, want_votes)
+    }
+
+    /// The post-processing of [`Segmenter::instances_and_votes`] applied to given outputs
+    /// `small` at the network's resolution, laid out as one image of
+    /// [`Segmenter::probabilities_small`] (probabilities, then offsets in
+    /// [`crate::config::OFFSET_UNIT`]s). `eval-seg --oracle` passes the training targets here
+    /// to measure what the representation and its post-processing allow with a perfect
+    /// network. Votes come back when `want_votes` or `post.centres` needs them.
+    ///
+    /// Errors: `small` not `outputs × H × W` of the configuration.
+    pub fn instances_from_small(
+        &self,
+        small: &[f32],
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+        want_votes: bool,
+    ) -> Result<(Vec<Instance>, Option<CentreVotes>)> {
+        let net = &self.config.net;
+        let expected = net.outputs * (net.input_width * net.input_height) as usize;
+        if small.len() != expected {
+            return Err(SegError::Input(format!(
+                "{} network outputs, expected {} ({} maps of {}×{})",
+                small.len(),
+                expected,
+                net.outputs,
+                net.input_width,
+                net.input_height
+            )));
+        }
+        let object = self.full_resolution(small, 0, depth);
         let post = &self.config.post;
         let min_pixels = post.min_pixels_at(depth.width, depth.height);
         let votes = if want_votes || post.centres.is_some() {
-            self.votes_from(&small, depth)
+            self.votes_from(small, depth)
         } else {
             None
         };
         let mut found = if self.config.net.has_core() {
-            let core = self.full_resolution(&small, 1, depth);
+            let core = self.full_resolution(small, 1, depth);
             split_instances(
                 &object,
                 &core,

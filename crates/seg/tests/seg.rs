@@ -358,3 +358,38 @@ fn a_four_output_network_learns_the_centres_and_its_votes_cut_touching_boxes() {
         assert!(iou > 0.8, "box {id}: IoU {iou}");
     }
 }
+
+#[test]
+fn the_training_targets_through_the_post_processing_give_back_the_touching_boxes() {
+    // What `eval-seg --oracle` measures: a perfect network's outputs (the targets) cut the
+    // boxes apart with the cores alone, and with the votes too; a wrong-sized output is an
+    // error.
+    let cfg = SegConfig::preset("tiny-clutter-offsets").unwrap();
+    let (depth, ids) = touching_boxes();
+    let truth = SegExample::from_instances(&depth, &camera(), &ids, |i| i != 3, &cfg).unwrap();
+    let trainer = SegTrainer::new(cfg, 1).unwrap();
+    let mut seg = trainer.segmenter();
+    for centres in [None, Some(ic_seg::centres::CentreConfig::default())] {
+        seg.config_mut().post.centres = centres.clone();
+        let (mut found, votes) = seg
+            .instances_from_small(&truth.target, &depth, &camera(), true)
+            .unwrap();
+        assert!(votes.is_some());
+        found.sort_by_key(|i| i.mask.data.iter().position(|&m| m));
+        assert_eq!(found.len(), 2, "centres {centres:?}");
+        for (inst, id) in found.iter().zip([1, 2]) {
+            let mask = Mask {
+                width: 64,
+                height: 48,
+                data: ids.data.iter().map(|&i| i == id).collect(),
+            };
+            let iou = ic_seg::post::iou(&inst.mask, &mask);
+            assert!(iou > 0.8, "box {id}: IoU {iou} (centres {centres:?})");
+        }
+    }
+    let short = &truth.target[1..];
+    let err = seg
+        .instances_from_small(short, &depth, &camera(), false)
+        .unwrap_err();
+    assert!(err.to_string().contains("network outputs"), "{err}");
+}

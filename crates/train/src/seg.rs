@@ -311,6 +311,11 @@ pub struct TrainArgs {
     /// or the `--init` checkpoint's.
     #[arg(long)]
     pub input: Option<String>,
+    /// Two- and four-output networks: the instance cores' radius in network pixels (an
+    /// object pixel is core when every pixel within it shows the same instance). Default:
+    /// the preset's, or the `--init` checkpoint's; a resumed run keeps its checkpoint's.
+    #[arg(long)]
+    pub core_radius: Option<usize>,
     /// Output folder: latest.safetensors (resumable), best.safetensors (weights), CSV logs.
     #[arg(long)]
     pub out: PathBuf,
@@ -396,6 +401,16 @@ pub struct EvalArgs {
     /// beside the network's instances in colours with the target's outline in white.
     #[arg(long)]
     pub misses: Option<PathBuf>,
+    /// Clutter scenes: score the post-processing on the training targets (the maps a perfect
+    /// network would output at its resolution: object, cores, centre offsets) instead of the
+    /// network's outputs — what the representation allows. The network only gives its
+    /// configuration.
+    #[arg(long)]
+    pub oracle: bool,
+    /// With `--oracle`: the targets' instance-core radius (network pixels) instead of the
+    /// network's training setting, to compare representations.
+    #[arg(long, requires = "oracle")]
+    pub core_radius: Option<usize>,
     #[arg(long)]
     pub threads: Option<usize>,
 }
@@ -494,6 +509,14 @@ pub fn evaluate_network(seg: &Segmenter, views: &[RoomView]) -> Result<MaskMetri
 pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Result<SegTrainer> {
     if args.resume && latest.exists() {
         let mut t = SegTrainer::resume_run(latest, args.iterations)?;
+        let radius = t.config().train.core_radius;
+        if args.core_radius.is_some_and(|r| r != radius) {
+            anyhow::bail!(
+                "{}: the run trains cores of radius {radius}; --core-radius applies when a run \
+                 starts",
+                latest.display()
+            );
+        }
         // As for the pose network: a resumed run may continue at another learning rate.
         if let Some(lr) = args.learning_rate {
             tracing::info!("learning rate {} from iteration {}", lr, t.iteration());
@@ -543,6 +566,9 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
     }
     if let Some(v) = args.learning_rate {
         cfg.train.learning_rate = v;
+    }
+    if let Some(v) = args.core_radius {
+        cfg.train.core_radius = v;
     }
     let mut t = SegTrainer::new(cfg, args.seed)?;
     if let Some(p) = init {
@@ -1005,6 +1031,9 @@ pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
     if scene_kind(&args.scenes)? == SceneKind::Clutter {
         return eval_clutter(args, &seg);
     }
+    if args.oracle {
+        bail!("--oracle scores the instances of clutter scenes: it needs --scenes clutter");
+    }
     let (split, holdout) = match args.split.as_str() {
         "test" => (Split::Test, false),
         "val" => (Split::Test, true),
@@ -1170,7 +1199,22 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     for (i, s) in scenes.enumerate() {
         let s = s?;
         let t = Instant::now();
-        let (found, votes) = seg.instances_and_votes(&s.depth, &s.intrinsics)?;
+        let (found, votes) = if args.oracle {
+            let mut cfg = seg.config().clone();
+            if let Some(r) = args.core_radius {
+                cfg.train.core_radius = r;
+            }
+            let truth = SegExample::from_instances(
+                &s.depth,
+                &s.intrinsics,
+                &s.instances,
+                |id| id < SUPPORT_ID_BASE,
+                &cfg,
+            )?;
+            seg.instances_from_small(&truth.target, &s.depth, &s.intrinsics, true)?
+        } else {
+            seg.instances_and_votes(&s.depth, &s.intrinsics)?
+        };
         let m = match_scene(&found, &s)?;
         seconds.push(t.elapsed().as_secs_f64());
         if let Some(votes) = votes {
@@ -1213,6 +1257,7 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     let summary = ic_eval::instances::summarise(&matches);
     let report = serde_json::json!({
         "model": args.model,
+        "oracle": args.oracle,
         "scenes": "clutter",
         "split": args.split,
         "seed": args.seed,
