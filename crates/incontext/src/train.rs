@@ -455,6 +455,7 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
         lr_floor: c.lr_floor,
         input: None,
         core_radius: None,
+        balance_area: None,
     };
     let outcome =
         ic_train::seg::train_objects(&args, start.path(), corpus.clone(), corpus, control(c))

@@ -273,6 +273,21 @@ pub struct SegTrainConfig {
     /// and Dice terms.
     #[serde(default = "default_offset_weight")]
     pub offset_weight: f64,
+    /// Instance balance (clutter scenes; 0: off): the object pixels of an instance of `n`
+    /// network pixels weigh `clamp(√(balance_area / n), 1, BALANCE_CAP)` in the
+    /// cross-entropy and the offsets' error, every other pixel 1. The target found rate
+    /// counts a small target as much as a large one; the unweighted per-pixel loss counts it
+    /// by its pixels. Written only when on, so files without it stay readable by older
+    /// builds.
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    pub balance_area: f64,
+}
+
+/// The largest weight [`SegTrainConfig::balance_area`] gives a pixel.
+pub const BALANCE_CAP: f64 = 4.0;
+
+fn is_zero_f64(v: &f64) -> bool {
+    *v == 0.0
 }
 
 fn default_core_radius() -> usize {
@@ -321,6 +336,7 @@ impl SegConfig {
                 render_height: 240,
                 core_radius: 2,
                 offset_weight: default_offset_weight(),
+                balance_area: 0.0,
             },
         }
     }
@@ -356,6 +372,7 @@ impl SegConfig {
                 render_height: 192,
                 core_radius: 2,
                 offset_weight: default_offset_weight(),
+                balance_area: 0.0,
             },
         }
     }
@@ -424,6 +441,7 @@ impl SegConfig {
                 render_height: 48,
                 core_radius: 1,
                 offset_weight: default_offset_weight(),
+                balance_area: 0.0,
             },
         }
     }
@@ -489,14 +507,16 @@ impl SegConfig {
             c.validate()?;
         }
         let t = &self.train;
+        let weight = |v: f64| v >= 0.0 && v.is_finite();
         if t.batch_size == 0
             || !(t.learning_rate > 0.0)
-            || !(t.offset_weight >= 0.0 && t.offset_weight.is_finite())
+            || !weight(t.offset_weight)
+            || !weight(t.balance_area)
             || t.render_width == 0
             || t.render_height == 0
         {
             return Err(SegError::Config(
-                "batch_size, learning_rate and the render size must be positive, offset_weight finite and not negative".into(),
+                "batch_size, learning_rate and the render size must be positive, offset_weight and balance_area finite and not negative".into(),
             ));
         }
         Ok(())

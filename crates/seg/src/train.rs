@@ -7,7 +7,9 @@
 //! batch. The objects cover 0.5–40 % of the pixels; the Dice term keeps a small object from
 //! being a rounding error of the cross-entropy. A four-output network's centre offsets add
 //! `offset_weight` × their mean absolute error over the true object pixels (in
-//! [`crate::config::OFFSET_UNIT`]s; the offsets of other pixels are not trained).
+//! [`crate::config::OFFSET_UNIT`]s; the offsets of other pixels are not trained). With
+//! per-pixel weights ([`SegExample::weight`], `train.balance_area`) the cross-entropy and the
+//! offsets' error are weighted means; the Dice term is not weighted.
 
 use candle_core::Tensor;
 use ic_geometry::{DepthImage, Image, Intrinsics, Mask};
@@ -25,6 +27,8 @@ pub struct SegExample {
     /// `[outputs, H, W]`: 1 on the object (then on the instance cores), 0 elsewhere; then, for
     /// four-output networks, the centre offsets x and y (0 off the objects).
     pub target: Vec<f32>,
+    /// `[H, W]` per-pixel loss weights (`train.balance_area`), or empty: every pixel 1.
+    pub weight: Vec<f32>,
 }
 
 impl SegExample {
@@ -130,19 +134,45 @@ impl SegExample {
                 }
             }
         }
+        let weight = if config.train.balance_area > 0.0 {
+            let mut count: std::collections::HashMap<u32, f64> = Default::default();
+            for (&id, &o) in ids.iter().zip(&object) {
+                if o {
+                    *count.entry(id).or_default() += 1.0;
+                }
+            }
+            let area = config.train.balance_area;
+            ids.iter()
+                .zip(&object)
+                .map(|(id, &o)| {
+                    if o {
+                        (area / count[id])
+                            .sqrt()
+                            .clamp(1.0, crate::config::BALANCE_CAP) as f32
+                    } else {
+                        1.0
+                    }
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
         Ok(SegExample {
             input: prepare_input(depth, intrinsics, config.net.input, w, h)?,
             target,
+            weight,
         })
     }
 }
 
 /// The loss (see the module doc) of `logits` `[B, C, H, W]` against `targets` of the same
-/// shape (each probability map is its own Dice term). With C = 4 the last two maps are the
-/// centre offsets, weighted by `offset_weight`.
+/// shape (each probability map is its own Dice term), with optional per-pixel `weights`
+/// `[B, 1, H, W]`. With C = 4 the last two maps are the centre offsets, weighted by
+/// `offset_weight`.
 pub fn seg_loss(
     logits: &Tensor,
     targets: &Tensor,
+    weights: Option<&Tensor>,
     dice_weight: f64,
     offset_weight: f64,
 ) -> Result<Tensor> {
@@ -151,9 +181,14 @@ pub fn seg_loss(
         let maps = map_loss(
             &logits.narrow(1, 0, 2)?,
             &targets.narrow(1, 0, 2)?,
+            weights,
             dice_weight,
         )?;
         let object = targets.narrow(1, 0, 1)?;
+        let object = match weights {
+            Some(w) => (object * w)?,
+            None => object,
+        };
         let err = (logits.narrow(1, 2, 2)? - targets.narrow(1, 2, 2)?)?
             .abs()?
             .broadcast_mul(&object)?;
@@ -163,18 +198,30 @@ pub fn seg_loss(
         let offsets = err.sum_all()?.div(&pixels)?;
         return Ok((maps + (offsets * offset_weight)?)?);
     }
-    map_loss(logits, targets, dice_weight)
+    map_loss(logits, targets, weights, dice_weight)
 }
 
-/// Cross-entropy and Dice over every map of `logits`.
-fn map_loss(logits: &Tensor, targets: &Tensor, dice_weight: f64) -> Result<Tensor> {
+/// Cross-entropy (weighted mean with `weights` `[B, 1, H, W]`) and Dice over every map of
+/// `logits`.
+fn map_loss(
+    logits: &Tensor,
+    targets: &Tensor,
+    weights: Option<&Tensor>,
+    dice_weight: f64,
+) -> Result<Tensor> {
     let (b, c, h, w) = logits.dims4()?;
     let x = logits.reshape((b * c, h * w))?;
     let y = targets.reshape((b * c, h * w))?;
-    let b = b * c;
     // BCE with logits, stable: max(x, 0) − x·y + log(1 + exp(−|x|)).
     let bce = ((x.relu()? - (&x * &y)?)? + ((x.abs()?.neg()?.exp()? + 1.0)?.log()?))?;
-    let bce = bce.mean_all()?;
+    let bce = match weights {
+        Some(wt) => {
+            let wt = wt.broadcast_as((b, c, h, w))?.reshape((b * c, h * w))?;
+            (bce * &wt)?.sum_all()?.div(&wt.sum_all()?)?
+        }
+        None => bce.mean_all()?,
+    };
+    let b = b * c;
     if dice_weight == 0.0 {
         return Ok(bce);
     }

@@ -112,7 +112,14 @@ fn every_parameter_receives_a_gradient() {
         &Device::Cpu,
     )
     .unwrap();
-    let loss = seg_loss(&trainer.net().forward_t(&x, true).unwrap(), &y, 1.0, 0.5).unwrap();
+    let loss = seg_loss(
+        &trainer.net().forward_t(&x, true).unwrap(),
+        &y,
+        None,
+        1.0,
+        0.5,
+    )
+    .unwrap();
     let grads = loss.backward().unwrap();
     let mut seen = 0;
     for (name, var) in trainer.varmap().data().lock().unwrap().iter() {
@@ -392,4 +399,61 @@ fn the_training_targets_through_the_post_processing_give_back_the_touching_boxes
         .instances_from_small(short, &depth, &camera(), false)
         .unwrap_err();
     assert!(err.to_string().contains("network outputs"), "{err}");
+}
+
+#[test]
+fn instance_balance_weighs_a_small_instance_up_to_the_cap_and_unit_weights_leave_the_loss_as_it_was()
+ {
+    // 64×48 depth, network 32×24: a large box (id 1, 20×20 → 10×10 network pixels) and a
+    // small one (id 2, 4×4 → 2×2) before a wall (id 3).
+    let (w, h) = (64u32, 48u32);
+    let mut depth = DepthImage::filled(w, h, 4.0);
+    let mut ids = ic_geometry::Image {
+        width: w,
+        height: h,
+        data: vec![3u32; (w * h) as usize],
+    };
+    for v in 10..30 {
+        for u in 10..30 {
+            depth.data[(v * w + u) as usize] = 3.0;
+            ids.data[(v * w + u) as usize] = 1;
+        }
+    }
+    for v in 10..14 {
+        for u in 40..44 {
+            depth.data[(v * w + u) as usize] = 3.0;
+            ids.data[(v * w + u) as usize] = 2;
+        }
+    }
+    let mut cfg = SegConfig::preset("tiny-clutter-offsets").unwrap();
+    let plain = SegExample::from_instances(&depth, &camera(), &ids, |i| i != 3, &cfg).unwrap();
+    assert!(plain.weight.is_empty());
+    cfg.train.balance_area = 100.0;
+    let ex = SegExample::from_instances(&depth, &camera(), &ids, |i| i != 3, &cfg).unwrap();
+    assert_eq!(ex.target, plain.target);
+    let nw = cfg.net.input_width as usize;
+    let weight_at = |x: usize, y: usize| ex.weight[y * nw + x];
+    assert_eq!(weight_at(7, 7), 1.0, "100 pixels: √(100/100)");
+    assert_eq!(
+        weight_at(20, 5),
+        ic_seg::config::BALANCE_CAP as f32,
+        "4 pixels: capped"
+    );
+    assert_eq!(weight_at(0, 0), 1.0, "the wall");
+    // The loss with weights all 1 is the unweighted loss; with the balance it differs.
+    let trainer = SegTrainer::new(cfg.clone(), 3).unwrap();
+    let nh = cfg.net.input_height as usize;
+    let x = Tensor::from_vec(ex.input.clone(), (1, 2, nh, nw), &Device::Cpu).unwrap();
+    let y = Tensor::from_vec(ex.target.clone(), (1, 4, nh, nw), &Device::Cpu).unwrap();
+    let logits = trainer.net().forward_t(&x, false).unwrap();
+    let loss = |wt: Option<&Tensor>| -> f32 {
+        seg_loss(&logits, &y, wt, 1.0, 0.5)
+            .unwrap()
+            .to_scalar()
+            .unwrap()
+    };
+    let ones = Tensor::ones((1, 1, nh, nw), candle_core::DType::F32, &Device::Cpu).unwrap();
+    let balanced = Tensor::from_vec(ex.weight.clone(), (1, 1, nh, nw), &Device::Cpu).unwrap();
+    assert!((loss(Some(&ones)) - loss(None)).abs() < 1e-6);
+    assert!((loss(Some(&balanced)) - loss(None)).abs() > 1e-4);
 }

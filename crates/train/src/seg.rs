@@ -198,7 +198,11 @@ impl Trainer<UNet> {
         Segmenter::from_parts(self.net.clone(), self.config.clone())
     }
 
-    fn tensors(&self, examples: &[SegExample]) -> Result<(Tensor, Tensor), SegError> {
+    /// The batch's inputs, targets and per-pixel weights (`None` when the examples have none).
+    fn tensors(
+        &self,
+        examples: &[SegExample],
+    ) -> Result<(Tensor, Tensor, Option<Tensor>), SegError> {
         let (w, h) = (
             self.config.net.input_width as usize,
             self.config.net.input_height as usize,
@@ -208,28 +212,39 @@ impl Trainer<UNet> {
         let b = examples.len();
         let mut input = Vec::with_capacity(b * cin * w * h);
         let mut target = Vec::with_capacity(b * c * w * h);
+        let weighted = examples.first().is_some_and(|e| !e.weight.is_empty());
+        let mut weight = Vec::with_capacity(if weighted { b * w * h } else { 0 });
         for e in examples {
-            if e.input.len() != cin * w * h || e.target.len() != c * w * h {
+            if e.input.len() != cin * w * h
+                || e.target.len() != c * w * h
+                || e.weight.len() != if weighted { w * h } else { 0 }
+            {
                 return Err(SegError::Input(format!(
-                    "example is not {cin}×{h}×{w} with {c}×{h}×{w} targets"
+                    "example is not {cin}×{h}×{w} with {c}×{h}×{w} targets (and {h}×{w} weights \
+                     in every example of the batch or in none)"
                 )));
             }
             input.extend_from_slice(&e.input);
             target.extend_from_slice(&e.target);
+            weight.extend_from_slice(&e.weight);
         }
         Ok((
             Tensor::from_vec(input, (b, cin, h, w), &self.device)?,
             Tensor::from_vec(target, (b, c, h, w), &self.device)?,
+            weighted
+                .then(|| Tensor::from_vec(weight, (b, 1, h, w), &self.device))
+                .transpose()?,
         ))
     }
 
     /// The loss of `examples` without a step (inference mode).
     pub fn loss(&self, examples: &[SegExample]) -> Result<f32, SegError> {
-        let (x, y) = self.tensors(examples)?;
+        let (x, y, wt) = self.tensors(examples)?;
         let logits = self.net.forward_t(&x, false)?;
         Ok(seg_loss(
             &logits,
             &y,
+            wt.as_ref(),
             self.config.train.dice_weight,
             self.config.train.offset_weight,
         )?
@@ -241,11 +256,12 @@ impl Trainer<UNet> {
         if examples.is_empty() {
             return Err(SegError::Input("empty batch".into()));
         }
-        let (x, y) = self.tensors(examples)?;
+        let (x, y, wt) = self.tensors(examples)?;
         let logits = self.net.forward_t(&x, true)?;
         let loss = seg_loss(
             &logits,
             &y,
+            wt.as_ref(),
             self.config.train.dice_weight,
             self.config.train.offset_weight,
         )?;
@@ -316,6 +332,11 @@ pub struct TrainArgs {
     /// the preset's, or the `--init` checkpoint's; a resumed run keeps its checkpoint's.
     #[arg(long)]
     pub core_radius: Option<usize>,
+    /// Clutter scenes: weigh each instance's object pixels by √(AREA / its pixels), between 1
+    /// and 4, in the loss (`SegTrainConfig::balance_area`, network pixels; 0: off). Default:
+    /// the preset's or the `--init` checkpoint's; a resumed run keeps its checkpoint's.
+    #[arg(long)]
+    pub balance_area: Option<f64>,
     /// Output folder: latest.safetensors (resumable), best.safetensors (weights), CSV logs.
     #[arg(long)]
     pub out: PathBuf,
@@ -509,11 +530,17 @@ pub fn evaluate_network(seg: &Segmenter, views: &[RoomView]) -> Result<MaskMetri
 pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Result<SegTrainer> {
     if args.resume && latest.exists() {
         let mut t = SegTrainer::resume_run(latest, args.iterations)?;
-        let radius = t.config().train.core_radius;
+        let (radius, area) = (t.config().train.core_radius, t.config().train.balance_area);
         if args.core_radius.is_some_and(|r| r != radius) {
             anyhow::bail!(
                 "{}: the run trains cores of radius {radius}; --core-radius applies when a run \
                  starts",
+                latest.display()
+            );
+        }
+        if args.balance_area.is_some_and(|a| a != area) {
+            anyhow::bail!(
+                "{}: the run's balance area is {area}; --balance-area applies when a run starts",
                 latest.display()
             );
         }
@@ -569,6 +596,9 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
     }
     if let Some(v) = args.core_radius {
         cfg.train.core_radius = v;
+    }
+    if let Some(v) = args.balance_area {
+        cfg.train.balance_area = v;
     }
     let mut t = SegTrainer::new(cfg, args.seed)?;
     if let Some(p) = init {
