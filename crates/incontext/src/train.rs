@@ -456,6 +456,7 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
         input: None,
         core_radius: None,
         balance_area: None,
+        border_weight: None,
     };
     let outcome =
         ic_train::seg::train_objects(&args, start.path(), corpus.clone(), corpus, control(c))

@@ -8,8 +8,8 @@
 //! being a rounding error of the cross-entropy. A four-output network's centre offsets add
 //! `offset_weight` × their mean absolute error over the true object pixels (in
 //! [`crate::config::OFFSET_UNIT`]s; the offsets of other pixels are not trained). With
-//! per-pixel weights ([`SegExample::weight`], `train.balance_area`) the cross-entropy and the
-//! offsets' error are weighted means; the Dice term is not weighted.
+//! per-pixel weights ([`SegExample::weight`], `train.balance_area`, `train.border_weight`) the
+//! cross-entropy and the offsets' error are weighted means; the Dice term is not weighted.
 
 use candle_core::Tensor;
 use ic_geometry::{DepthImage, Image, Intrinsics, Mask};
@@ -27,7 +27,8 @@ pub struct SegExample {
     /// `[outputs, H, W]`: 1 on the object (then on the instance cores), 0 elsewhere; then, for
     /// four-output networks, the centre offsets x and y (0 off the objects).
     pub target: Vec<f32>,
-    /// `[H, W]` per-pixel loss weights (`train.balance_area`), or empty: every pixel 1.
+    /// `[H, W]` per-pixel loss weights (`train.balance_area`, `train.border_weight`), or
+    /// empty: every pixel 1.
     pub weight: Vec<f32>,
 }
 
@@ -134,35 +135,79 @@ impl SegExample {
                 }
             }
         }
-        let weight = if config.train.balance_area > 0.0 {
-            let mut count: std::collections::HashMap<u32, f64> = Default::default();
-            for (&id, &o) in ids.iter().zip(&object) {
-                if o {
-                    *count.entry(id).or_default() += 1.0;
-                }
-            }
-            let area = config.train.balance_area;
-            ids.iter()
-                .zip(&object)
-                .map(|(id, &o)| {
-                    if o {
-                        (area / count[id])
-                            .sqrt()
-                            .clamp(1.0, crate::config::BALANCE_CAP) as f32
-                    } else {
-                        1.0
-                    }
-                })
-                .collect()
-        } else {
-            Vec::new()
-        };
+        let weight = loss_weights(&ids, &object, wu, hu, &config.train);
         Ok(SegExample {
             input: prepare_input(depth, intrinsics, config.net.input, w, h)?,
             target,
             weight,
         })
     }
+}
+
+/// The per-pixel loss weights of `train.balance_area` and `train.border_weight` for instance
+/// ids `ids` (`w`×`h`, row-major; `object` says which are objects), or empty when both are
+/// off.
+fn loss_weights(
+    ids: &[u32],
+    object: &[bool],
+    w: usize,
+    h: usize,
+    train: &crate::config::SegTrainConfig,
+) -> Vec<f32> {
+    if train.balance_area <= 0.0 && train.border_weight <= 0.0 {
+        return Vec::new();
+    }
+    let mut weight = vec![1.0f32; w * h];
+    if train.balance_area > 0.0 {
+        let mut count: std::collections::HashMap<u32, f64> = Default::default();
+        for (&id, &o) in ids.iter().zip(object) {
+            if o {
+                *count.entry(id).or_default() += 1.0;
+            }
+        }
+        for ((wt, id), &o) in weight.iter_mut().zip(ids).zip(object) {
+            if o {
+                *wt = (train.balance_area / count[id])
+                    .sqrt()
+                    .clamp(1.0, crate::config::BALANCE_CAP) as f32;
+            }
+        }
+    }
+    if train.border_weight > 0.0 {
+        // The nearest pixel of another object within 3 σ (square window, Euclidean distance).
+        let sigma = crate::config::BORDER_SIGMA;
+        let r = (3.0 * sigma).ceil() as i64;
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                if !object[i] {
+                    continue;
+                }
+                let mut d2 = f64::INFINITY;
+                for dy in -r..=r {
+                    let ny = y as i64 + dy;
+                    if ny < 0 || ny >= h as i64 {
+                        continue;
+                    }
+                    for dx in -r..=r {
+                        let nx = x as i64 + dx;
+                        if nx < 0 || nx >= w as i64 {
+                            continue;
+                        }
+                        let j = ny as usize * w + nx as usize;
+                        if object[j] && ids[j] != ids[i] {
+                            d2 = d2.min((dx * dx + dy * dy) as f64);
+                        }
+                    }
+                }
+                if d2.is_finite() {
+                    let near = (-d2 / (2.0 * sigma * sigma)).exp();
+                    weight[i] *= (1.0 + train.border_weight * near) as f32;
+                }
+            }
+        }
+    }
+    weight
 }
 
 /// The loss (see the module doc) of `logits` `[B, C, H, W]` against `targets` of the same

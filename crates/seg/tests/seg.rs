@@ -457,3 +457,31 @@ fn instance_balance_weighs_a_small_instance_up_to_the_cap_and_unit_weights_leave
     assert!((loss(Some(&ones)) - loss(None)).abs() < 1e-6);
     assert!((loss(Some(&balanced)) - loss(None)).abs() > 1e-4);
 }
+
+#[test]
+fn border_weight_marks_where_two_objects_touch_and_nowhere_else() {
+    let mut cfg = SegConfig::preset("tiny-clutter").unwrap();
+    let (depth, ids) = touching_boxes();
+    cfg.train.border_weight = 5.0;
+    let ex = SegExample::from_instances(&depth, &camera(), &ids, |i| i != 3, &cfg).unwrap();
+    // At 32×24 the boxes are columns 6–15 and 16–25, rows 7–16: they touch between 15 and 16.
+    let nw = cfg.net.input_width as usize;
+    let at = |x: usize, y: usize| ex.weight[y * nw + x];
+    let touching = 1.0 + 5.0 * (-1.0f64 / 8.0).exp();
+    assert!(
+        (at(15, 10) as f64 - touching).abs() < 1e-5,
+        "{}",
+        at(15, 10)
+    );
+    assert!(
+        (at(16, 10) as f64 - touching).abs() < 1e-5,
+        "{}",
+        at(16, 10)
+    );
+    assert!(
+        at(14, 10) < at(15, 10) && at(14, 10) > 1.0,
+        "falls off with the distance"
+    );
+    assert_eq!(at(6, 10), 1.0, "7 pixels from the other box: beyond 3 σ");
+    assert_eq!(at(0, 0), 1.0, "the wall");
+}

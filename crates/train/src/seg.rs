@@ -337,6 +337,11 @@ pub struct TrainArgs {
     /// the preset's or the `--init` checkpoint's; a resumed run keeps its checkpoint's.
     #[arg(long)]
     pub balance_area: Option<f64>,
+    /// Clutter scenes: weigh object pixels near another object by 1 + W·exp(−d²/8), d in
+    /// network pixels (`SegTrainConfig::border_weight`; 0: off). Default: the preset's or the
+    /// `--init` checkpoint's; a resumed run keeps its checkpoint's.
+    #[arg(long)]
+    pub border_weight: Option<f64>,
     /// Output folder: latest.safetensors (resumable), best.safetensors (weights), CSV logs.
     #[arg(long)]
     pub out: PathBuf,
@@ -538,6 +543,14 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
                 latest.display()
             );
         }
+        let border = t.config().train.border_weight;
+        if args.border_weight.is_some_and(|b| b != border) {
+            anyhow::bail!(
+                "{}: the run's border weight is {border}; --border-weight applies when a run \
+                 starts",
+                latest.display()
+            );
+        }
         if args.balance_area.is_some_and(|a| a != area) {
             anyhow::bail!(
                 "{}: the run's balance area is {area}; --balance-area applies when a run starts",
@@ -599,6 +612,9 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
     }
     if let Some(v) = args.balance_area {
         cfg.train.balance_area = v;
+    }
+    if let Some(v) = args.border_weight {
+        cfg.train.border_weight = v;
     }
     let mut t = SegTrainer::new(cfg, args.seed)?;
     if let Some(p) = init {

@@ -395,6 +395,7 @@ fn seg_args(out: &Path, iterations: u64, resume: bool) -> ic_train::seg::TrainAr
         input: None,
         core_radius: None,
         balance_area: None,
+        border_weight: None,
     }
 }
 
@@ -995,30 +996,38 @@ fn a_four_output_checkpoint_starts_an_offset_branch_network_computing_the_same_a
 }
 
 #[test]
-fn a_balanced_clutter_run_records_its_balance_and_core_radius_and_a_resume_keeps_them() {
+fn a_balanced_clutter_run_records_its_loss_weights_and_core_radius_and_a_resume_keeps_them() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("balanced");
     let args = ic_train::seg::TrainArgs {
         balance_area: Some(50.0),
+        border_weight: Some(3.0),
         core_radius: Some(2),
         ..clutter_args(&out, 2)
     };
     let o = ic_train::seg::train(&args, control(never())).unwrap();
     assert_eq!((o.ending, o.iteration), (Ending::Finished, 2));
     let cfg = ic_seg::checkpoint::read_config(&out.join("latest.safetensors")).unwrap();
-    assert_eq!((cfg.train.balance_area, cfg.train.core_radius), (50.0, 2));
-    for (area, radius, flag) in [
-        (Some(60.0), None, "--balance-area"),
-        (None, Some(1), "--core-radius"),
-    ] {
-        let resume = ic_train::seg::TrainArgs {
+    let t = &cfg.train;
+    assert_eq!(
+        (t.balance_area, t.border_weight, t.core_radius),
+        (50.0, 3.0, 2)
+    );
+    let with =
+        |area: Option<f64>, border: Option<f64>, radius: Option<usize>| ic_train::seg::TrainArgs {
             balance_area: area,
+            border_weight: border,
             core_radius: radius,
             resume: true,
             iterations: Some(3),
             ..clutter_args(&out, 3)
         };
-        let err = ic_train::seg::train(&resume, control(never())).unwrap_err();
+    for (args, flag) in [
+        (with(Some(60.0), None, None), "--balance-area"),
+        (with(None, Some(1.0), None), "--border-weight"),
+        (with(None, None, Some(1)), "--core-radius"),
+    ] {
+        let err = ic_train::seg::train(&args, control(never())).unwrap_err();
         assert!(format!("{err:#}").contains(flag), "{err:#}");
     }
 }
