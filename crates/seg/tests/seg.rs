@@ -278,17 +278,23 @@ fn segment_rejects_a_depth_map_of_another_size_or_without_valid_pixels() {
     }
 }
 
-/// Two rounded boxes touching side by side at one depth before a wall (64×48, [`camera`]):
-/// instance ids 1 (left, columns 12–31) and 2 (right, columns 32–51), rows 14–33, each
-/// nearest along its middle column so they meet at a crease; the wall is id 3.
-fn touching_boxes() -> (DepthImage, ic_geometry::Image<u32>) {
+/// A 64×48 view ([`camera`]) of a wall 4 m away, instance id 3 everywhere.
+fn wall() -> (DepthImage, ic_geometry::Image<u32>) {
     let (w, h) = (64u32, 48u32);
-    let mut depth = DepthImage::filled(w, h, 4.0);
-    let mut ids = ic_geometry::Image {
+    let ids = ic_geometry::Image {
         width: w,
         height: h,
         data: vec![3u32; (w * h) as usize],
     };
+    (DepthImage::filled(w, h, 4.0), ids)
+}
+
+/// Two rounded boxes touching side by side at one depth before a wall (64×48, [`camera`]):
+/// instance ids 1 (left, columns 12–31) and 2 (right, columns 32–51), rows 14–33, each
+/// nearest along its middle column so they meet at a crease; the wall is id 3.
+fn touching_boxes() -> (DepthImage, ic_geometry::Image<u32>) {
+    let (mut depth, mut ids) = wall();
+    let w = depth.width;
     for v in 14..34 {
         for u in 12..52 {
             let i = (v * w + u) as usize;
@@ -355,14 +361,24 @@ fn a_four_output_network_learns_the_centres_and_its_votes_cut_touching_boxes() {
     seg.config_mut().post.centres = Some(ic_seg::centres::CentreConfig::default());
     let found = both(&seg);
     assert_eq!(found.len(), 2, "the votes cut the boxes apart");
+    assert_each_box_found(&found, &ids, "votes");
+}
+
+/// `found` (sorted by first pixel) holds [`touching_boxes`]' left and right box, in order,
+/// each at IoU > 0.8.
+fn assert_each_box_found(
+    found: &[ic_seg::post::Instance],
+    ids: &ic_geometry::Image<u32>,
+    what: &str,
+) {
     for (inst, id) in found.iter().zip([1, 2]) {
         let truth = Mask {
-            width: 64,
-            height: 48,
+            width: ids.width,
+            height: ids.height,
             data: ids.data.iter().map(|&i| i == id).collect(),
         };
         let iou = ic_seg::post::iou(&inst.mask, &truth);
-        assert!(iou > 0.8, "box {id}: IoU {iou}");
+        assert!(iou > 0.8, "box {id}: IoU {iou} ({what})");
     }
 }
 
@@ -384,15 +400,7 @@ fn the_training_targets_through_the_post_processing_give_back_the_touching_boxes
         assert!(votes.is_some());
         found.sort_by_key(|i| i.mask.data.iter().position(|&m| m));
         assert_eq!(found.len(), 2, "centres {centres:?}");
-        for (inst, id) in found.iter().zip([1, 2]) {
-            let mask = Mask {
-                width: 64,
-                height: 48,
-                data: ids.data.iter().map(|&i| i == id).collect(),
-            };
-            let iou = ic_seg::post::iou(&inst.mask, &mask);
-            assert!(iou > 0.8, "box {id}: IoU {iou} (centres {centres:?})");
-        }
+        assert_each_box_found(&found, &ids, &format!("centres {centres:?}"));
     }
     let short = &truth.target[1..];
     let err = seg
@@ -406,13 +414,8 @@ fn instance_balance_weighs_a_small_instance_up_to_the_cap_and_unit_weights_leave
  {
     // 64×48 depth, network 32×24: a large box (id 1, 20×20 → 10×10 network pixels) and a
     // small one (id 2, 4×4 → 2×2) before a wall (id 3).
-    let (w, h) = (64u32, 48u32);
-    let mut depth = DepthImage::filled(w, h, 4.0);
-    let mut ids = ic_geometry::Image {
-        width: w,
-        height: h,
-        data: vec![3u32; (w * h) as usize],
-    };
+    let (mut depth, mut ids) = wall();
+    let w = depth.width;
     for v in 10..30 {
         for u in 10..30 {
             depth.data[(v * w + u) as usize] = 3.0;
