@@ -247,7 +247,8 @@ impl Segmenter {
     /// to measure what the representation and its post-processing allow with a perfect
     /// network. Votes come back when `want_votes` or `post.centres` needs them.
     ///
-    /// Errors: `small` not `outputs × H × W` of the configuration.
+    /// Errors: `small` not `outputs × H × W` of the configuration; a depth map that does not
+    /// fit the camera.
     pub fn instances_from_small(
         &self,
         small: &[f32],
@@ -255,6 +256,8 @@ impl Segmenter {
         intrinsics: &Intrinsics,
         want_votes: bool,
     ) -> Result<(Vec<Instance>, Option<CentreVotes>)> {
+        intrinsics.validate()?;
+        depth.check_size(intrinsics.width, intrinsics.height)?;
         let net = &self.config.net;
         let expected = net.outputs * (net.input_width * net.input_height) as usize;
         if small.len() != expected {
