@@ -237,7 +237,7 @@ impl Segmenter {
         intrinsics.validate()?;
         depth.check_size(intrinsics.width, intrinsics.height)?;
         let small = self.probabilities_small(&[(depth, intrinsics)])?.remove(0);
-        self.instances_from_small(&small, depth, intrinsics, want_votes)
+        self.post_process(&small, depth, intrinsics, want_votes)
     }
 
     /// The post-processing of [`Segmenter::instances_and_votes`] applied to given outputs
@@ -270,6 +270,18 @@ impl Segmenter {
                 net.input_height
             )));
         }
+        self.post_process(small, depth, intrinsics, want_votes)
+    }
+
+    /// The post-processing of checked outputs `small` (see
+    /// [`Segmenter::instances_from_small`]).
+    fn post_process(
+        &self,
+        small: &[f32],
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+        want_votes: bool,
+    ) -> Result<(Vec<Instance>, Option<CentreVotes>)> {
         let object = self.full_resolution(small, 0, depth);
         let post = &self.config.post;
         let min_pixels = post.min_pixels_at(depth.width, depth.height);

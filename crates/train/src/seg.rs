@@ -535,27 +535,23 @@ pub fn evaluate_network(seg: &Segmenter, views: &[RoomView]) -> Result<MaskMetri
 pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Result<SegTrainer> {
     if args.resume && latest.exists() {
         let mut t = SegTrainer::resume_run(latest, args.iterations)?;
-        let (radius, area) = (t.config().train.core_radius, t.config().train.balance_area);
-        if args.core_radius.is_some_and(|r| r != radius) {
-            anyhow::bail!(
-                "{}: the run trains cores of radius {radius}; --core-radius applies when a run \
-                 starts",
-                latest.display()
-            );
-        }
-        let border = t.config().train.border_weight;
-        if args.border_weight.is_some_and(|b| b != border) {
-            anyhow::bail!(
-                "{}: the run's border weight is {border}; --border-weight applies when a run \
-                 starts",
-                latest.display()
-            );
-        }
-        if args.balance_area.is_some_and(|a| a != area) {
-            anyhow::bail!(
-                "{}: the run's balance area is {area}; --balance-area applies when a run starts",
-                latest.display()
-            );
+        // What the run's targets and loss are made of stays the checkpoint's.
+        let run = &t.config().train;
+        for (flag, asked, kept) in [
+            (
+                "--core-radius",
+                args.core_radius.map(|r| r as f64),
+                run.core_radius as f64,
+            ),
+            ("--balance-area", args.balance_area, run.balance_area),
+            ("--border-weight", args.border_weight, run.border_weight),
+        ] {
+            if asked.is_some_and(|v| v != kept) {
+                anyhow::bail!(
+                    "{}: the run's {flag} is {kept}; {flag} applies when a run starts",
+                    latest.display()
+                );
+            }
         }
         // As for the pose network: a resumed run may continue at another learning rate.
         if let Some(lr) = args.learning_rate {
@@ -1242,20 +1238,21 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
          target_visible_px,target_best_iou,target_best_cover,target_covered,\
          target_holder_precision,target_miss,predictions\n",
     );
+    // `--oracle`: the targets of the network's configuration, with `--core-radius`'s cores.
+    let mut oracle_cfg = seg.config().clone();
+    if let Some(r) = args.core_radius {
+        oracle_cfg.train.core_radius = r;
+    }
     for (i, s) in scenes.enumerate() {
         let s = s?;
         let t = Instant::now();
         let (found, votes) = if args.oracle {
-            let mut cfg = seg.config().clone();
-            if let Some(r) = args.core_radius {
-                cfg.train.core_radius = r;
-            }
             let truth = SegExample::from_instances(
                 &s.depth,
                 &s.intrinsics,
                 &s.instances,
                 |id| id < SUPPORT_ID_BASE,
-                &cfg,
+                &oracle_cfg,
             )?;
             seg.instances_from_small(&truth.target, &s.depth, &s.intrinsics, true)?
         } else {
