@@ -412,9 +412,11 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
     let corpus = user_corpus(&c.objects)?;
     prepare_out(c)?;
     let start = start_from(c, crate::models::SEG, "segmentation network")?;
-    // A two-output network (the shipped one: every object and its instance core) trains on
-    // cluttered scenes of the user's meshes with a fifth of lone objects in a room, as it was
-    // trained; a one-output network (`--from` an older checkpoint) on room scenes.
+    // A four-output network (the shipped one: every object, its instance core and the centre
+    // offsets) or a two-output one (object and core) trains on cluttered scenes of the user's
+    // meshes with a fifth of lone objects in a room, as it was trained (its loss weights
+    // included: they come with its configuration); a one-output network (`--from` an older
+    // checkpoint) on room scenes.
     let outputs = match start.path() {
         Some(p) => {
             ic_seg::checkpoint::read_config(p)

@@ -317,7 +317,7 @@ pub struct TrainArgs {
     /// network, a one-output one of the same channels for a two-output preset (its head
     /// is widened: e.g. `--preset clutter --init models/seg-cpu.safetensors`), or one of
     /// narrower channels for a wider preset (function-preserving, `ic_train::widen`: e.g.
-    /// `--preset clutter-wide --init models/seg-clutter.safetensors`). Ignored when
+    /// `--preset clutter-wide --init models/runs/seg-clutter/best.safetensors`). Ignored when
     /// `--resume` finds a checkpoint.
     #[arg(long)]
     pub init: Option<PathBuf>,
