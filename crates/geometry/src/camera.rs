@@ -98,6 +98,14 @@ impl Intrinsics {
         Ok(())
     }
 
+    /// Validates this camera ([`Intrinsics::validate`]) and that `image` (a depth map or a
+    /// mask of this camera's view) has its size: what every function taking a view checks
+    /// before it reads a pixel.
+    pub fn check_image<T>(&self, image: &crate::Image<T>) -> Result<(), GeometryError> {
+        self.validate()?;
+        image.check_size(self.width, self.height)
+    }
+
     /// The 3×3 matrix K, row-major (`cam_K` in BOP files).
     pub fn k_row_major(&self) -> [[f64; 3]; 3] {
         [
@@ -337,6 +345,26 @@ mod tests {
         assert!(Intrinsics::new(500.0, f64::NAN, 320.0, 240.0, 640, 480).is_err());
         assert!(Intrinsics::new(500.0, 500.0, 320.0, 240.0, 0, 480).is_err());
         assert!(Intrinsics::from_fov_y(640, 480, 0.0).is_err());
+    }
+
+    #[test]
+    fn check_image_rejects_a_bad_camera_before_the_size_and_a_wrong_size_after() {
+        let k = Intrinsics::new(100.0, 100.0, 1.0, 0.5, 3, 2).unwrap();
+        assert!(k.check_image(&DepthImage::filled(3, 2, 1.0)).is_ok());
+        assert!(matches!(
+            k.check_image(&Mask::from_vec(2, 3, vec![true; 6]).unwrap()),
+            Err(GeometryError::ImageSizeMismatch {
+                got_width: 2,
+                got_height: 3,
+                ..
+            })
+        ));
+        // A camera built field by field (e.g. deserialised) is validated, not trusted.
+        let bad = Intrinsics { fx: -1.0, ..k };
+        assert!(matches!(
+            bad.check_image(&DepthImage::filled(3, 2, 1.0)),
+            Err(GeometryError::InvalidIntrinsics(_))
+        ));
     }
 
     #[test]

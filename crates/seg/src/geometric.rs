@@ -109,8 +109,7 @@ pub fn segment_geometric(
     object_scale: f64,
     cfg: &GeometricConfig,
 ) -> Result<GeometricSegmentation> {
-    intrinsics.validate()?;
-    depth.check_size(intrinsics.width, intrinsics.height)?;
+    intrinsics.check_image(depth)?;
     if !(model_diameter > 0.0 && object_scale > 0.0) {
         return Err(SegError::Input(
             "model diameter and object scale must be positive".into(),

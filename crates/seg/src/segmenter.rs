@@ -157,8 +157,7 @@ impl Segmenter {
     /// [`SegError::Input`] / geometry errors for a depth map that does not fit the camera or
     /// has no valid pixel.
     pub fn segment(&self, depth: &DepthImage, intrinsics: &Intrinsics) -> Result<Segmentation> {
-        intrinsics.validate()?;
-        depth.check_size(intrinsics.width, intrinsics.height)?;
+        intrinsics.check_image(depth)?;
         let t0 = Instant::now();
         let small = self.probabilities_small(&[(depth, intrinsics)])?.remove(0);
         let network_seconds = t0.elapsed().as_secs_f64();
@@ -234,8 +233,7 @@ impl Segmenter {
         intrinsics: &Intrinsics,
         want_votes: bool,
     ) -> Result<(Vec<Instance>, Option<CentreVotes>)> {
-        intrinsics.validate()?;
-        depth.check_size(intrinsics.width, intrinsics.height)?;
+        intrinsics.check_image(depth)?;
         let small = self.probabilities_small(&[(depth, intrinsics)])?.remove(0);
         self.post_process(&small, depth, intrinsics, want_votes)
     }
@@ -256,8 +254,7 @@ impl Segmenter {
         intrinsics: &Intrinsics,
         want_votes: bool,
     ) -> Result<(Vec<Instance>, Option<CentreVotes>)> {
-        intrinsics.validate()?;
-        depth.check_size(intrinsics.width, intrinsics.height)?;
+        intrinsics.check_image(depth)?;
         let net = &self.config.net;
         let expected = net.outputs * (net.input_width * net.input_height) as usize;
         if small.len() != expected {
