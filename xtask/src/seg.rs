@@ -83,6 +83,10 @@ pub struct PostArgs {
     /// compare with (votes agreeing to within it are one centre).
     #[arg(long)]
     centre_spread_floor: Option<f32>,
+    /// Average the network's outputs on the depth map and on its mirror image (`true` /
+    /// `false`; twice the network's time).
+    #[arg(long)]
+    mirror_average: Option<bool>,
     /// Four-output networks: ignore the centre offsets (the instances of the cores alone).
     #[arg(long, conflicts_with_all = ["centre_split", "centre_merge", "centre_min_share", "centre_spread_floor"])]
     no_centres: bool,
@@ -111,6 +115,9 @@ pub fn set_post(args: PostArgs) -> Result<()> {
     }
     if let Some(v) = args.core_threshold {
         p.core_threshold = v;
+    }
+    if let Some(v) = args.mirror_average {
+        p.mirror_average = v;
     }
     if let Some(v) = args.input_width {
         cfg.net.input_width = v;

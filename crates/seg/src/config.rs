@@ -183,6 +183,12 @@ pub struct PostConfig {
     /// ([`crate::centres`]); `None`: the offsets are not used.
     #[serde(default)]
     pub centres: Option<crate::centres::CentreConfig>,
+    /// Test-time mirroring: the network also sees the depth map mirrored left to right, and
+    /// its outputs are the mean of the two passes (the mirrored pass mirrored back, its x
+    /// centre offsets negated). Twice the network's time; the training is unchanged (a scene
+    /// and its mirror image are equally likely: objects fall at random, gravity stays down).
+    #[serde(default)]
+    pub mirror_average: bool,
 }
 
 fn default_core_threshold() -> f32 {
@@ -247,6 +253,7 @@ impl Default for PostConfig {
             core_threshold: 0.5,
             support: None,
             centres: None,
+            mirror_average: false,
         }
     }
 }

@@ -98,6 +98,15 @@ pub fn prepare_input(
     Ok(out)
 }
 
+/// Mirrors every `width`×`height` plane of `planes` (channel-major, as the network's input
+/// and output) left to right, in place: column x becomes column `width − 1 − x`.
+pub fn mirror_planes(planes: &mut [f32], width: usize, height: usize) {
+    debug_assert_eq!(planes.len() % (width * height).max(1), 0);
+    if width > 0 {
+        planes.chunks_exact_mut(width).for_each(<[f32]>::reverse);
+    }
+}
+
 /// The unit surface normal (camera frame: x right, y down, z forward; turned towards the
 /// camera) of each pixel of `depth` resized to `width`×`height` as [`resize_nearest`] does,
 /// each small pixel back-projected at the source pixel it was taken from. Central

@@ -10,8 +10,9 @@ use ic_geometry::{DepthImage, Image, Intrinsics, Mask};
 
 use crate::centres::CentreVotes;
 use crate::config::SegConfig;
+use crate::config::SegInput;
 use crate::infer::FoldedUNet;
-use crate::input::{prepare_input, upsample_bilinear};
+use crate::input::{mirror_planes, prepare_input, upsample_bilinear};
 use crate::post::{Instance, best_instance, erode3x3, instances, masked_points, split_instances};
 use crate::unet::UNet;
 use crate::{Result, SegError, checkpoint};
@@ -86,14 +87,53 @@ impl Segmenter {
     /// Per-pixel probabilities of `images` (each a depth map and its camera) at the network's
     /// resolution, `[B][outputs·H·W]` (the object map, then the core map of a two- or
     /// four-output network, then a four-output network's centre offsets x and y as they are,
-    /// in [`crate::config::OFFSET_UNIT`]s of network pixels).
+    /// in [`crate::config::OFFSET_UNIT`]s of network pixels). With
+    /// [`crate::PostConfig::mirror_average`], the mean of the pass on each image and the pass
+    /// on its mirror image (mirrored back, the x offsets negated).
     pub fn probabilities_small(
         &self,
         images: &[(&DepthImage, &Intrinsics)],
     ) -> Result<Vec<Vec<f32>>> {
         let (w, h) = (self.config.net.input_width, self.config.net.input_height);
         let kind = self.config.net.input;
-        let prepare = |(d, k): &(&DepthImage, &Intrinsics)| prepare_input(d, k, kind, w, h);
+        let inputs = images
+            .iter()
+            .map(|(d, k)| prepare_input(d, k, kind, w, h))
+            .collect::<Result<Vec<_>>>()?;
+        let mut out = self.outputs_small(&inputs)?;
+        if !self.config.post.mirror_average {
+            return Ok(out);
+        }
+        let plane = (w * h) as usize;
+        let mirrored = inputs
+            .into_iter()
+            .map(|mut x| {
+                mirror_planes(&mut x, w as usize, h as usize);
+                if kind == SegInput::DepthNormals {
+                    // The normal's x component (channel 2) changes sign in a mirror image.
+                    x[2 * plane..3 * plane].iter_mut().for_each(|v| *v = -*v);
+                }
+                x
+            })
+            .collect::<Vec<_>>();
+        let offsets_x = self.config.net.has_offsets().then_some(2);
+        for (o, mut m) in out.iter_mut().zip(self.outputs_small(&mirrored)?) {
+            mirror_planes(&mut m, w as usize, h as usize);
+            if let Some(c) = offsets_x {
+                m[c * plane..(c + 1) * plane]
+                    .iter_mut()
+                    .for_each(|v| *v = -*v);
+            }
+            o.iter_mut().zip(&m).for_each(|(a, b)| *a = 0.5 * (*a + b));
+        }
+        Ok(out)
+    }
+
+    /// One pass of the network on prepared inputs (each `[C·H·W]`): the probability maps
+    /// through the sigmoid, the centre offsets as they are.
+    fn outputs_small(&self, inputs: &[Vec<f32>]) -> Result<Vec<Vec<f32>>> {
+        let (w, h) = (self.config.net.input_width, self.config.net.input_height);
+        let kind = self.config.net.input;
         // The probability maps (object, core); the centre offsets stay as they are.
         let maps = self.config.net.outputs.min(2);
         let plane = (w * h) as usize;
@@ -102,10 +142,10 @@ impl Segmenter {
             // function, several times faster on the CPU. Folded per call, so a segmenter
             // sharing a network in training sees its current weights.
             let folded = FoldedUNet::new(&self.net)?;
-            return images
+            return inputs
                 .iter()
-                .map(|image| {
-                    let mut logits = folded.forward(&prepare(image)?, h as usize, w as usize)?;
+                .map(|input| {
+                    let mut logits = folded.forward(input, h as usize, w as usize)?;
                     logits[..maps * plane]
                         .iter_mut()
                         .for_each(|v| *v = 1.0 / (1.0 + (-*v).exp()));
@@ -113,13 +153,9 @@ impl Segmenter {
                 })
                 .collect();
         }
-        let mut input = Vec::with_capacity(images.len() * kind.channels() * (w * h) as usize);
-        for image in images {
-            input.extend(prepare(image)?);
-        }
         let x = Tensor::from_vec(
-            input,
-            (images.len(), kind.channels(), h as usize, w as usize),
+            inputs.concat(),
+            (inputs.len(), kind.channels(), h as usize, w as usize),
             &self.device,
         )?;
         let logits = self.net.forward_t(&x, false)?.detach();

@@ -488,3 +488,52 @@ fn border_weight_marks_where_two_objects_touch_and_nowhere_else() {
     assert_eq!(at(6, 10), 1.0, "7 pixels from the other box: beyond 3 σ");
     assert_eq!(at(0, 0), 1.0, "the wall");
 }
+
+/// `depth` mirrored left to right.
+fn mirrored(depth: &DepthImage) -> DepthImage {
+    let mut out = depth.clone();
+    ic_seg::input::mirror_planes(&mut out.data, depth.width as usize, depth.height as usize);
+    out
+}
+
+#[test]
+fn mirror_averaging_is_the_mean_of_both_passes_and_commutes_with_a_mirror() {
+    // A four-output network at its own input size (32×24), so that mirroring the depth map
+    // mirrors the network's input exactly; a few steps so that its weights are not symmetric.
+    let mut cfg = SegConfig::tiny();
+    cfg.net.outputs = 4;
+    let k = Intrinsics::new(30.0, 30.0, 15.5, 11.5, 32, 24).unwrap();
+    let mut depth = DepthImage::filled(32, 24, 4.0);
+    for v in 6..15 {
+        for u in 5..17 {
+            depth.data[v * 32 + u] = 3.0 + 0.05 * (u as f32 - 8.0).abs();
+        }
+    }
+    let mut trainer = SegTrainer::new(cfg.clone(), 4).unwrap();
+    trainer.step(&examples(&cfg)).unwrap();
+    let plain = trainer.segmenter();
+    let mut averaging = plain.clone();
+    averaging.config_mut().post.mirror_average = true;
+    let pass = |s: &Segmenter, d: &DepthImage| s.probabilities_small(&[(d, &k)]).unwrap().remove(0);
+    // Mirrors each output plane back and negates the x offsets (plane 2).
+    let unmirror = |mut o: Vec<f32>| {
+        ic_seg::input::mirror_planes(&mut o, 32, 24);
+        o[2 * 768..3 * 768].iter_mut().for_each(|v| *v = -*v);
+        o
+    };
+    let (a, b) = (
+        pass(&plain, &depth),
+        unmirror(pass(&plain, &mirrored(&depth))),
+    );
+    let mean: Vec<f32> = a.iter().zip(&b).map(|(x, y)| 0.5 * (x + y)).collect();
+    let averaged = pass(&averaging, &depth);
+    let close = |x: &[f32], y: &[f32]| x.iter().zip(y).all(|(p, q)| (p - q).abs() < 1e-5);
+    assert!(close(&averaged, &mean));
+    // The averaged network sees a mirrored scene as the mirror of the scene; the plain one
+    // does not (else this test could not tell a wrong sign or a missing mirror).
+    assert!(close(
+        &unmirror(pass(&averaging, &mirrored(&depth))),
+        &averaged
+    ));
+    assert!(!close(&b, &a));
+}
