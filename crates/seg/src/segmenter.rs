@@ -9,8 +9,7 @@ use glam::Vec3;
 use ic_geometry::{DepthImage, Image, Intrinsics, Mask};
 
 use crate::centres::CentreVotes;
-use crate::config::SegConfig;
-use crate::config::SegInput;
+use crate::config::{SegConfig, SegInput};
 use crate::infer::FoldedUNet;
 use crate::input::{mirror_planes, prepare_input, upsample_bilinear};
 use crate::post::{Instance, best_instance, erode3x3, instances, masked_points, split_instances};
