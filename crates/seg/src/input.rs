@@ -99,11 +99,19 @@ pub fn prepare_input(
 }
 
 /// Mirrors every `width`×`height` plane of `planes` (channel-major, as the network's input
-/// and output) left to right, in place: column x becomes column `width − 1 − x`.
-pub fn mirror_planes(planes: &mut [f32], width: usize, height: usize) {
-    debug_assert_eq!(planes.len() % (width * height).max(1), 0);
+/// and output) left to right, in place: column x becomes column `width − 1 − x`. Plane
+/// `x_plane`, when given, holds the x component of a vector (a surface normal's, a centre
+/// offset's) and is negated too, as a mirror image turns it.
+pub fn mirror_planes(planes: &mut [f32], width: usize, height: usize, x_plane: Option<usize>) {
+    let plane = width * height;
+    debug_assert_eq!(planes.len() % plane.max(1), 0);
     if width > 0 {
         planes.chunks_exact_mut(width).for_each(<[f32]>::reverse);
+    }
+    if let Some(c) = x_plane {
+        planes[c * plane..(c + 1) * plane]
+            .iter_mut()
+            .for_each(|v| *v = -*v);
     }
 }
 

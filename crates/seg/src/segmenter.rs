@@ -95,34 +95,32 @@ impl Segmenter {
     ) -> Result<Vec<Vec<f32>>> {
         let (w, h) = (self.config.net.input_width, self.config.net.input_height);
         let kind = self.config.net.input;
-        let inputs = images
+        let mut inputs = images
             .iter()
             .map(|(d, k)| prepare_input(d, k, kind, w, h))
             .collect::<Result<Vec<_>>>()?;
-        let mut out = self.outputs_small(&inputs)?;
         if !self.config.post.mirror_average {
-            return Ok(out);
+            return self.outputs_small(&inputs);
         }
-        let plane = (w * h) as usize;
-        let mirrored = inputs
-            .into_iter()
-            .map(|mut x| {
-                mirror_planes(&mut x, w as usize, h as usize);
-                if kind == SegInput::DepthNormals {
-                    // The normal's x component (channel 2) changes sign in a mirror image.
-                    x[2 * plane..3 * plane].iter_mut().for_each(|v| *v = -*v);
-                }
+        // One pass over the images and their mirror images together (the network is folded
+        // once); the normal's x component (input channel 2) changes sign in a mirror image.
+        let (n, (w, h)) = (inputs.len(), (w as usize, h as usize));
+        let normal_x = (kind == SegInput::DepthNormals).then_some(2);
+        let mirrored: Vec<Vec<f32>> = inputs
+            .iter()
+            .map(|x| {
+                let mut x = x.clone();
+                mirror_planes(&mut x, w, h, normal_x);
                 x
             })
-            .collect::<Vec<_>>();
-        let offsets_x = self.config.net.has_offsets().then_some(2);
-        for (o, mut m) in out.iter_mut().zip(self.outputs_small(&mirrored)?) {
-            mirror_planes(&mut m, w as usize, h as usize);
-            if let Some(c) = offsets_x {
-                m[c * plane..(c + 1) * plane]
-                    .iter_mut()
-                    .for_each(|v| *v = -*v);
-            }
+            .collect();
+        inputs.extend(mirrored);
+        let mut out = self.outputs_small(&inputs)?;
+        let back = out.split_off(n);
+        // The mirrored passes mirrored back, their x offsets (output plane 2) negated.
+        let offset_x = self.config.net.has_offsets().then_some(2);
+        for (o, mut m) in out.iter_mut().zip(back) {
+            mirror_planes(&mut m, w, h, offset_x);
             o.iter_mut().zip(&m).for_each(|(a, b)| *a = 0.5 * (*a + b));
         }
         Ok(out)

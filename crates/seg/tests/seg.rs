@@ -492,7 +492,12 @@ fn border_weight_marks_where_two_objects_touch_and_nowhere_else() {
 /// `depth` mirrored left to right.
 fn mirrored(depth: &DepthImage) -> DepthImage {
     let mut out = depth.clone();
-    ic_seg::input::mirror_planes(&mut out.data, depth.width as usize, depth.height as usize);
+    ic_seg::input::mirror_planes(
+        &mut out.data,
+        depth.width as usize,
+        depth.height as usize,
+        None,
+    );
     out
 }
 
@@ -517,8 +522,7 @@ fn mirror_averaging_is_the_mean_of_both_passes_and_commutes_with_a_mirror() {
     let pass = |s: &Segmenter, d: &DepthImage| s.probabilities_small(&[(d, &k)]).unwrap().remove(0);
     // Mirrors each output plane back and negates the x offsets (plane 2).
     let unmirror = |mut o: Vec<f32>| {
-        ic_seg::input::mirror_planes(&mut o, 32, 24);
-        o[2 * 768..3 * 768].iter_mut().for_each(|v| *v = -*v);
+        ic_seg::input::mirror_planes(&mut o, 32, 24, Some(2));
         o
     };
     let (a, b) = (
