@@ -6,7 +6,7 @@ use candle_core::{Device, Tensor};
 use ic_geometry::{DepthImage, Intrinsics, Mask};
 use ic_nn::adam::is_trainable;
 use ic_seg::unet::{Conv2d, max_pool2, upsample2};
-use ic_seg::{SegConfig, SegError, SegExample, Segmenter, seg_loss};
+use ic_seg::{SegConfig, SegError, SegExample, SegInput, Segmenter, seg_loss};
 use ic_train::SegTrainer;
 
 /// A wall at depth 4 with a box at depth 3 whose position depends on `shift`.
@@ -503,41 +503,49 @@ fn mirrored(depth: &DepthImage) -> DepthImage {
 
 #[test]
 fn mirror_averaging_is_the_mean_of_both_passes_and_commutes_with_a_mirror() {
-    // A four-output network at its own input size (32×24), so that mirroring the depth map
-    // mirrors the network's input exactly; a few steps so that its weights are not symmetric.
-    let mut cfg = SegConfig::tiny();
-    cfg.net.outputs = 4;
-    let k = Intrinsics::new(30.0, 30.0, 15.5, 11.5, 32, 24).unwrap();
-    let mut depth = DepthImage::filled(32, 24, 4.0);
-    for v in 6..15 {
-        for u in 5..17 {
-            depth.data[v * 32 + u] = 3.0 + 0.05 * (u as f32 - 8.0).abs();
+    // Both inputs: with surface normals, the mirror also negates the normal's x component
+    // (input plane 2), which a wrong sign would break.
+    for input in [SegInput::Depth, SegInput::DepthNormals] {
+        // A four-output network at its own input size (32×24), so that mirroring the depth
+        // map mirrors the network's input exactly (the principal point centred, so the
+        // mirrored depth is the mirrored scene); a few steps so that its weights are not
+        // symmetric.
+        let mut cfg = SegConfig::tiny();
+        cfg.net.outputs = 4;
+        cfg.net.input = input;
+        let k = Intrinsics::new(30.0, 30.0, 15.5, 11.5, 32, 24).unwrap();
+        let mut depth = DepthImage::filled(32, 24, 4.0);
+        for v in 6..15 {
+            for u in 5..17 {
+                depth.data[v * 32 + u] = 3.0 + 0.05 * (u as f32 - 8.0).abs();
+            }
         }
+        let mut trainer = SegTrainer::new(cfg.clone(), 4).unwrap();
+        trainer.step(&examples(&cfg)).unwrap();
+        let plain = trainer.segmenter();
+        let mut averaging = plain.clone();
+        averaging.config_mut().post.mirror_average = true;
+        let pass =
+            |s: &Segmenter, d: &DepthImage| s.probabilities_small(&[(d, &k)]).unwrap().remove(0);
+        // Mirrors each output plane back and negates the x offsets (plane 2).
+        let unmirror = |mut o: Vec<f32>| {
+            ic_seg::input::mirror_planes(&mut o, 32, 24, Some(2));
+            o
+        };
+        let (a, b) = (
+            pass(&plain, &depth),
+            unmirror(pass(&plain, &mirrored(&depth))),
+        );
+        let mean: Vec<f32> = a.iter().zip(&b).map(|(x, y)| 0.5 * (x + y)).collect();
+        let averaged = pass(&averaging, &depth);
+        let close = |x: &[f32], y: &[f32]| x.iter().zip(y).all(|(p, q)| (p - q).abs() < 1e-5);
+        assert!(close(&averaged, &mean), "{input:?}");
+        // The averaged network sees a mirrored scene as the mirror of the scene; the plain
+        // one does not (else this test could not tell a wrong sign or a missing mirror).
+        assert!(
+            close(&unmirror(pass(&averaging, &mirrored(&depth))), &averaged),
+            "{input:?}"
+        );
+        assert!(!close(&b, &a), "{input:?}");
     }
-    let mut trainer = SegTrainer::new(cfg.clone(), 4).unwrap();
-    trainer.step(&examples(&cfg)).unwrap();
-    let plain = trainer.segmenter();
-    let mut averaging = plain.clone();
-    averaging.config_mut().post.mirror_average = true;
-    let pass = |s: &Segmenter, d: &DepthImage| s.probabilities_small(&[(d, &k)]).unwrap().remove(0);
-    // Mirrors each output plane back and negates the x offsets (plane 2).
-    let unmirror = |mut o: Vec<f32>| {
-        ic_seg::input::mirror_planes(&mut o, 32, 24, Some(2));
-        o
-    };
-    let (a, b) = (
-        pass(&plain, &depth),
-        unmirror(pass(&plain, &mirrored(&depth))),
-    );
-    let mean: Vec<f32> = a.iter().zip(&b).map(|(x, y)| 0.5 * (x + y)).collect();
-    let averaged = pass(&averaging, &depth);
-    let close = |x: &[f32], y: &[f32]| x.iter().zip(y).all(|(p, q)| (p - q).abs() < 1e-5);
-    assert!(close(&averaged, &mean));
-    // The averaged network sees a mirrored scene as the mirror of the scene; the plain one
-    // does not (else this test could not tell a wrong sign or a missing mirror).
-    assert!(close(
-        &unmirror(pass(&averaging, &mirrored(&depth))),
-        &averaged
-    ));
-    assert!(!close(&b, &a));
 }

@@ -431,14 +431,70 @@ pub struct EvalArgs {
     /// network would output at its resolution: object, cores, centre offsets) instead of the
     /// network's outputs — what the representation allows. The network only gives its
     /// configuration.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "oracle_maps")]
     pub oracle: bool,
-    /// With `--oracle`: the targets' instance-core radius (network pixels) instead of the
-    /// network's training setting, to compare representations.
-    #[arg(long, requires = "oracle")]
+    /// Clutter scenes: these maps from the training targets, the others from the network
+    /// (`object`, `core`, `offsets`; comma-separated): which of the network's outputs costs
+    /// the most targets. Every map is `--oracle`.
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub oracle_maps: Vec<OracleMap>,
+    /// With `--oracle` or `--oracle-maps`: the targets' instance-core radius (network pixels)
+    /// instead of the network's training setting, to compare representations.
+    #[arg(long)]
     pub core_radius: Option<usize>,
     #[arg(long)]
     pub threads: Option<usize>,
+}
+
+/// One output map of the segmentation network, for `eval-seg --oracle-maps`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OracleMap {
+    /// The object probability (map 0).
+    Object,
+    /// The instance cores (map 1; two- and four-output networks).
+    Core,
+    /// The centre offsets x and y (maps 2 and 3; four-output networks).
+    Offsets,
+}
+
+impl OracleMap {
+    /// The maps (first, count) it covers in a network's outputs.
+    fn maps(self) -> (usize, usize) {
+        match self {
+            OracleMap::Object => (0, 1),
+            OracleMap::Core => (1, 1),
+            OracleMap::Offsets => (2, 2),
+        }
+    }
+}
+
+/// `network`'s outputs (`[outputs, H, W]` flattened) with `maps` taken from `truth` (same
+/// layout): the mixed outputs of `eval-seg --oracle-maps`. Errors when a map is not among the
+/// network's outputs or the two differ in size.
+fn mix_oracle(
+    network: &mut [f32],
+    truth: &[f32],
+    maps: &[OracleMap],
+    outputs: usize,
+) -> Result<()> {
+    if network.len() != truth.len() || outputs == 0 || network.len() % outputs != 0 {
+        bail!(
+            "network outputs ({}) and targets ({}) differ in size",
+            network.len(),
+            truth.len()
+        );
+    }
+    let plane = network.len() / outputs;
+    for &m in maps {
+        let (first, count) = m.maps();
+        if first + count > outputs {
+            bail!("--oracle-maps {m:?}: the network has {outputs} output map(s), not this one");
+        }
+        let range = first * plane..(first + count) * plane;
+        network[range.clone()].copy_from_slice(&truth[range]);
+    }
+    Ok(())
 }
 
 /// The room-scene objects of a flat folder of numeric stems: with `holdout`, 000–749 train and
@@ -1070,12 +1126,18 @@ pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
             Some(args.support_grow),
         );
     }
+    if args.core_radius.is_some() && !args.oracle && args.oracle_maps.is_empty() {
+        bail!("--core-radius sets the oracle's cores: it needs --oracle or --oracle-maps");
+    }
     if scene_kind(&args.scenes)? == SceneKind::Clutter {
         return eval_clutter(args, &seg);
     }
-    if args.oracle {
-        bail!("--oracle scores the instances of clutter scenes: it needs --scenes clutter");
+    if args.oracle || !args.oracle_maps.is_empty() {
+        bail!(
+            "--oracle and --oracle-maps score the instances of clutter scenes: they need --scenes clutter"
+        );
     }
+
     let (split, holdout) = match args.split.as_str() {
         "test" => (Split::Test, false),
         "val" => (Split::Test, true),
@@ -1246,7 +1308,7 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     for (i, s) in scenes.enumerate() {
         let s = s?;
         let t = Instant::now();
-        let (found, votes) = if args.oracle {
+        let (found, votes) = if args.oracle || !args.oracle_maps.is_empty() {
             let truth = SegExample::from_instances(
                 &s.depth,
                 &s.intrinsics,
@@ -1254,7 +1316,21 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
                 |id| id < SUPPORT_ID_BASE,
                 &oracle_cfg,
             )?;
-            seg.instances_from_small(&truth.target, &s.depth, &s.intrinsics, true)?
+            let small = if args.oracle {
+                truth.target
+            } else {
+                let mut small = seg
+                    .probabilities_small(&[(&s.depth, &s.intrinsics)])?
+                    .remove(0);
+                mix_oracle(
+                    &mut small,
+                    &truth.target,
+                    &args.oracle_maps,
+                    seg.config().net.outputs,
+                )?;
+                small
+            };
+            seg.instances_from_small(&small, &s.depth, &s.intrinsics, true)?
         } else {
             seg.instances_and_votes(&s.depth, &s.intrinsics)?
         };
@@ -1301,6 +1377,7 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     let report = serde_json::json!({
         "model": args.model,
         "oracle": args.oracle,
+        "oracle_maps": args.oracle_maps,
         "scenes": "clutter",
         "split": args.split,
         "seed": args.seed,
@@ -1335,4 +1412,27 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
         csv.display()
     );
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn oracle_maps_replace_only_the_named_maps_and_refuse_a_map_the_network_lacks() {
+        // Four maps of 2 pixels: object, core, offset x, offset y.
+        let truth = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0];
+        let mut net = [0.0f32; 8];
+        mix_oracle(&mut net, &truth, &[OracleMap::Core], 4).unwrap();
+        assert_eq!(net, [0.0, 0.0, 3.0, 4.0, 0.0, 0.0, 0.0, 0.0]);
+        mix_oracle(&mut net, &truth, &[OracleMap::Offsets], 4).unwrap();
+        assert_eq!(net, [0.0, 0.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]);
+        mix_oracle(&mut net, &truth, &[OracleMap::Object], 4).unwrap();
+        assert_eq!(net, truth);
+        // A two-output network has no offsets; sizes must agree.
+        let mut two = [0.0f32; 4];
+        let err = mix_oracle(&mut two, &truth[..4], &[OracleMap::Offsets], 2).unwrap_err();
+        assert!(err.to_string().contains("2 output map(s)"), "{err}");
+        assert!(mix_oracle(&mut two, &truth, &[OracleMap::Object], 2).is_err());
+    }
 }

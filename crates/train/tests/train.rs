@@ -497,6 +497,7 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
             out: Some(report_path.clone()),
             misses: Some(misses.clone()),
             oracle: false,
+            oracle_maps: Vec::new(),
             core_radius: None,
             threads: None,
         };
@@ -538,8 +539,10 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
     assert!(with_support >= plain, "{with_support} < {plain}");
     // `--oracle` scores the post-processing on the training targets (at the tiny network's
     // 32×24, which loses the smallest instances): more instances than the two-iteration
-    // network finds; room scenes refuse it.
-    let run = |scenes: &str, oracle: bool, core_radius: Option<usize>| {
+    // network finds; room scenes refuse it. `--oracle-maps` with every map of the network is
+    // the same as `--oracle`.
+    use ic_train::seg::OracleMap;
+    let run = |scenes: &str, oracle: bool, maps: &[OracleMap], core_radius: Option<usize>| {
         ic_train::seg::eval(&ic_train::seg::EvalArgs {
             model: out.join("final.safetensors"),
             scenes: scenes.into(),
@@ -553,16 +556,20 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
             support_height: None,
             support_plane_threshold: None,
             support_grow: false,
-            out: Some(dir.path().join(format!("{scenes}-{oracle}.json"))),
+            out: Some(
+                dir.path()
+                    .join(format!("{scenes}-{oracle}-{}.json", maps.len())),
+            ),
             misses: None,
             oracle,
+            oracle_maps: maps.to_vec(),
             core_radius,
             threads: None,
         })
     };
     let recall = |r: &serde_json::Value| r["instances"]["recall"].as_f64().unwrap();
-    let perfect = run("clutter", true, Some(1)).unwrap();
-    let network = run("clutter", false, None).unwrap();
+    let perfect = run("clutter", true, &[], Some(1)).unwrap();
+    let network = run("clutter", false, &[], None).unwrap();
     assert_eq!(
         (&perfect["oracle"], &network["oracle"]),
         (&true.into(), &false.into())
@@ -573,8 +580,23 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
         recall(&perfect),
         recall(&network)
     );
-    let err = run("room", true, None).unwrap_err();
+    let every_map = run(
+        "clutter",
+        false,
+        &[OracleMap::Object, OracleMap::Core],
+        Some(1),
+    )
+    .unwrap();
+    assert_eq!(every_map["instances"], perfect["instances"]);
+    let core_only = run("clutter", false, &[OracleMap::Core], Some(1)).unwrap();
+    assert_eq!(core_only["oracle_maps"], serde_json::json!(["core"]));
+    // The tiny clutter network has no centre offsets to replace.
+    let err = run("clutter", false, &[OracleMap::Offsets], None).unwrap_err();
+    assert!(format!("{err:#}").contains("output map(s)"), "{err:#}");
+    let err = run("room", true, &[], None).unwrap_err();
     assert!(format!("{err:#}").contains("--scenes clutter"), "{err:#}");
+    let err = run("clutter", false, &[], Some(1)).unwrap_err();
+    assert!(format!("{err:#}").contains("--core-radius"), "{err:#}");
 }
 
 #[test]
