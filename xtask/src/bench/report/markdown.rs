@@ -14,6 +14,7 @@ use super::{Report, SetReport};
 use crate::bench::cases::Set;
 use crate::bench::common::write_atomic;
 use crate::bench::curve::SpeedCurve;
+use crate::bench::run::{MethodRun, RunStatus};
 use crate::bench::run::{PEER_METHODS, PPF_METHODS};
 use crate::bench::speed::{SIZES, Speed, Timed, size_label};
 
@@ -775,6 +776,38 @@ fn plot_curve(path: &Path, curve: &SpeedCurve, fgr: Option<f64>) -> Result<()> {
     Ok(())
 }
 
+/// The header line naming the result files a `--resume` run took from an earlier run (whose
+/// times were measured then, under that run's load), by set; `None` when every file ran now.
+fn reused_line(runs: &[MethodRun]) -> Option<String> {
+    let reused: Vec<&MethodRun> = runs
+        .iter()
+        .filter(|r| matches!(r.status, RunStatus::Ran { reused: true, .. }))
+        .collect();
+    if reused.is_empty() {
+        return None;
+    }
+    let mut by_set: Vec<(Set, Vec<&str>)> = Vec::new();
+    for r in &reused {
+        match by_set.iter_mut().find(|(s, _)| *s == r.set) {
+            Some((_, labels)) => labels.push(&r.label),
+            None => by_set.push((r.set, vec![&r.label])),
+        }
+    }
+    let sets: Vec<String> = by_set
+        .iter()
+        .map(|(set, labels)| format!("{}: {}", set.name(), labels.join(", ")))
+        .collect();
+    Some(format!(
+        "- Reused (`--resume`): {} of {} method rows come from result files an earlier run of this \
+         command wrote, not run again ({}); their accuracy is the same, their times were measured \
+         then, under that run's load. A peer's file that an earlier run left part-way is \
+         completed, not restarted.",
+        reused.len(),
+        runs.len(),
+        sets.join("; ")
+    ))
+}
+
 fn markdown(report: &Report, plots: &[(Set, Vec<PathBuf>)]) -> String {
     let c = &report.config;
     let m = &report.machine;
@@ -822,6 +855,9 @@ fn markdown(report: &Report, plots: &[(Set, Vec<PathBuf>)]) -> String {
         m.load_average_start.as_deref().unwrap_or("?"),
         m.load_average_end.as_deref().unwrap_or("?")
     );
+    if let Some(line) = reused_line(&report.runs) {
+        let _ = writeln!(s, "{line}");
+    }
     let _ = writeln!(
         s,
         "- Seed {} (case sets, our CLI's point sampling, the peers' RANSAC, timing pairs); {} \
@@ -1160,9 +1196,19 @@ mod tests {
             (2, 1, 1)
         );
         let md = markdown(&report, &[]);
+        assert!(!md.contains("Reused (`--resume`)"), "{md}");
         assert!(md.contains("opencv-ppf (1)"), "{md}");
         assert!(md.contains("| opencv-ppf 1.000 (1) |"), "{md}");
         assert!(md.contains("OpenCV 4.11.0 (benches/peers/ppf_peers.py), on the first 1 cases"));
+        // A row taken from an earlier run's file is named in the header.
+        if let RunStatus::Ran { reused, .. } = &mut report.runs[1].status {
+            *reused = true;
+        }
+        let md = markdown(&report, &[]);
+        assert!(
+            md.contains("- Reused (`--resume`): 1 of 3 method rows come from result files an earlier run of this command wrote, not run again (noback: o3d-fgr)"),
+            "{md}"
+        );
     }
 
     /// A real set whose cases have their geometry: the object columns, the accuracy on the
