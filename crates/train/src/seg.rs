@@ -1137,7 +1137,6 @@ pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
             "--oracle and --oracle-maps score the instances of clutter scenes: they need --scenes clutter"
         );
     }
-
     let (split, holdout) = match args.split.as_str() {
         "test" => (Split::Test, false),
         "val" => (Split::Test, true),

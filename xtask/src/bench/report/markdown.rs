@@ -14,8 +14,7 @@ use super::{Report, SetReport};
 use crate::bench::cases::Set;
 use crate::bench::common::write_atomic;
 use crate::bench::curve::SpeedCurve;
-use crate::bench::run::{MethodRun, RunStatus};
-use crate::bench::run::{PEER_METHODS, PPF_METHODS};
+use crate::bench::run::{MethodRun, PEER_METHODS, PPF_METHODS, RunStatus};
 use crate::bench::speed::{SIZES, Speed, Timed, size_label};
 
 fn fmt_s(v: Option<f64>) -> String {
