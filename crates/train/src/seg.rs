@@ -446,6 +446,13 @@ pub struct EvalArgs {
     pub threads: Option<usize>,
 }
 
+impl EvalArgs {
+    /// Whether any map comes from the training targets (`--oracle` or `--oracle-maps`).
+    fn any_oracle(&self) -> bool {
+        self.oracle || !self.oracle_maps.is_empty()
+    }
+}
+
 /// One output map of the segmentation network, for `eval-seg --oracle-maps`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
@@ -1126,13 +1133,13 @@ pub fn eval(args: &EvalArgs) -> Result<serde_json::Value> {
             Some(args.support_grow),
         );
     }
-    if args.core_radius.is_some() && !args.oracle && args.oracle_maps.is_empty() {
+    if args.core_radius.is_some() && !args.any_oracle() {
         bail!("--core-radius sets the oracle's cores: it needs --oracle or --oracle-maps");
     }
     if scene_kind(&args.scenes)? == SceneKind::Clutter {
         return eval_clutter(args, &seg);
     }
-    if args.oracle || !args.oracle_maps.is_empty() {
+    if args.any_oracle() {
         bail!(
             "--oracle and --oracle-maps score the instances of clutter scenes: they need --scenes clutter"
         );
@@ -1307,7 +1314,7 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     for (i, s) in scenes.enumerate() {
         let s = s?;
         let t = Instant::now();
-        let (found, votes) = if args.oracle || !args.oracle_maps.is_empty() {
+        let (found, votes) = if args.any_oracle() {
             let truth = SegExample::from_instances(
                 &s.depth,
                 &s.intrinsics,
