@@ -294,8 +294,8 @@ impl Trainer<UNet> {
 
 #[derive(clap::Args)]
 pub struct TrainArgs {
-    /// `cpu`, `clutter`, `clutter-wide`, `clutter-offsets` or `clutter-offsets-coarse` (with
-    /// `--scenes clutter`), or `tiny` / `tiny-clutter` / `tiny-clutter-wide` /
+    /// `cpu`, `clutter`, `clutter-wide`, `clutter-offsets`, `clutter-offsets-coarse` or
+    /// `clutter-offsets-fine` (with `--scenes clutter`), or `tiny` / `tiny-clutter` / `tiny-clutter-wide` /
     /// `tiny-clutter-offsets` / `tiny-clutter-offsets-coarse` (smoke tests).
     #[arg(long, default_value = "cpu")]
     pub preset: String,
@@ -442,6 +442,11 @@ pub struct EvalArgs {
     /// instead of the network's training setting, to compare representations.
     #[arg(long)]
     pub core_radius: Option<usize>,
+    /// Clutter scenes: render them at this width × height (pixels; the field of view and the
+    /// scenes' geometry kept, the sensor model applied at that size) instead of 640×480,
+    /// e.g. at the training resolution of the network, to tell what the input's size costs.
+    #[arg(long, num_args = 2, value_names = ["WIDTH", "HEIGHT"])]
+    pub render_size: Option<Vec<u32>>,
     #[arg(long)]
     pub threads: Option<usize>,
 }
@@ -1284,13 +1289,17 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     let spec = objects_spec(&args.objects)?;
     let split: Split = args.split.parse()?;
     let corpus = crate::pose::open_objects(&spec, split)?;
-    let cfg = ClutterConfig {
+    let mut cfg = ClutterConfig {
         fixed_sizes: true,
         ..ClutterConfig::default()
     };
+    if let Some(size) = &args.render_size {
+        cfg = cfg.with_resolution(size[0], size[1]);
+    }
+    let (width, height) = (cfg.intrinsics.width, cfg.intrinsics.height);
     let generator = Arc::new(ClutterGenerator::new(corpus, cfg.clone(), args.seed)?);
     tracing::info!(
-        "seed {}; {} clutter scenes of the {} split at 640×480",
+        "seed {}; {} clutter scenes of the {} split at {width}×{height}",
         args.seed,
         args.count,
         args.split
@@ -1387,7 +1396,7 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
         "scenes": "clutter",
         "split": args.split,
         "seed": args.seed,
-        "resolution": [640, 480],
+        "resolution": [width, height],
         "clutter": cfg,
         "config": seg.config(),
         "instances": summary,
