@@ -63,6 +63,11 @@ pub struct GenDataArgs {
     /// `test_targets_bop19.json`, the sensor model on), written to `clutter/`.
     #[arg(long, default_value_t = 0)]
     pub clutter_count: u64,
+    /// Cluttered scenes: the probability that a scene's sensor casts the projector's
+    /// shadows (`ic_data::SensorRanges::shadow_probability`: no return beside each nearer
+    /// edge, as structured-light sensors give; default 0, as the benchmark's sets).
+    #[arg(long, default_value_t = 0.0)]
+    pub shadow_probability: f64,
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub workers: Option<usize>,
@@ -277,11 +282,14 @@ pub fn gen_data(args: GenDataArgs) -> Result<()> {
     bar.finish();
     let room = writer.finish()?;
     let below5 = rates.0.iter().filter(|&&r| r < 0.05).count();
-    let clutter_cfg = ClutterConfig {
+    let mut clutter_cfg = ClutterConfig {
         fixed_sizes: true,
         full_masks: true,
         ..ClutterConfig::default()
     };
+    if let Some(sensor) = &mut clutter_cfg.sensor {
+        sensor.shadow_probability = args.shadow_probability;
+    }
     let clutter = if args.clutter_count > 0 {
         let g = Arc::new(ClutterGenerator::new(
             corpus.clone(),

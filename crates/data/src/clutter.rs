@@ -705,7 +705,7 @@ impl ClutterGenerator {
         if let Some(ranges) = &cfg.sensor {
             let mut srng = sample_rng(stream, 1);
             let target_px = r.count_returns(1).0.max(1) as f64;
-            let sensor = ranges.draw(&mut srng, target_px.sqrt());
+            let sensor = ranges.draw(&mut srng, target_px.sqrt(), cfg.intrinsics.fx);
             sensor.apply(&mut r, mix(stream, 2));
         }
         // No id where the sensor returned nothing.

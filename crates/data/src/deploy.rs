@@ -41,7 +41,7 @@ use glam::{DMat3, DQuat, DVec3, Vec3};
 use ic_geometry::{Intrinsics, Mask, Mesh, Pose, Viewpoint, look_at};
 use ic_render::{
     AxialNoise, Camera, DropoutPatches, FlyingPixels, GrazingDropout, LateralJitter, OBJECT_ID,
-    Quantisation, Renderer, Rendering, Scene, SensorConfig,
+    ProjectorShadow, Quantisation, Renderer, Rendering, Scene, SensorConfig,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -229,6 +229,13 @@ pub struct SensorRanges {
     /// size in pixels (√ of its visible pixel count).
     pub patch_count: (usize, usize),
     pub patch_radius: (f64, f64),
+    /// The probability that a drawn sensor casts the projector's shadows
+    /// ([`ProjectorShadow`]: structured light and active stereo, e.g. Kinect v1, Primesense,
+    /// RealSense D4xx): the pixels beside a nearer edge that the projector cannot light give
+    /// no return. The baseline is the drawn focal · baseline product over Kinect v1's 580 px
+    /// focal (0.05–0.09 m with the default range), on the camera's right or left at even
+    /// odds. 0 (the default) keeps every earlier set's draws.
+    pub shadow_probability: f64,
 }
 
 impl Default for SensorRanges {
@@ -243,6 +250,7 @@ impl Default for SensorRanges {
             jitter_sigma_px: (0.0, 0.8),
             patch_count: (0, 3),
             patch_radius: (0.03, 0.2),
+            shadow_probability: 0.0,
         }
     }
 }
@@ -260,8 +268,15 @@ fn log_uniform<R: Rng + ?Sized>(rng: &mut R, (lo, hi): (f64, f64)) -> f64 {
 }
 
 impl SensorRanges {
-    /// One sensor drawn from the ranges; `object_px` is the object's size in pixels.
-    pub fn draw<R: Rng + ?Sized>(&self, rng: &mut R, object_px: f64) -> SensorConfig {
+    /// One sensor drawn from the ranges; `object_px` is the object's size in pixels and
+    /// `focal_px` the rendering's fx (the projector's shadows are as wide as the disparities
+    /// it sees).
+    pub fn draw<R: Rng + ?Sized>(
+        &self,
+        rng: &mut R,
+        object_px: f64,
+        focal_px: f64,
+    ) -> SensorConfig {
         let k = log_uniform(rng, self.noise_factor);
         let base = AxialNoise::default();
         let (pl, ph) = self.patch_count;
@@ -271,16 +286,17 @@ impl SensorRanges {
             pl
         };
         let r = self.patch_radius;
-        SensorConfig {
+        // Kinect v1's focal length; the drawn product sets the baseline.
+        let baseline = uniform(rng, self.focal_baseline) / 580.0;
+        let mut sensor = SensorConfig {
             noise: Some(AxialNoise {
                 a: k * base.a,
                 b: k * base.b,
                 z0: base.z0,
             }),
-            // Kinect v1's focal length; the drawn product sets the baseline.
             quantisation: Some(Quantisation::Disparity {
                 focal: 580.0,
-                baseline: uniform(rng, self.focal_baseline) / 580.0,
+                baseline,
                 subpixel: uniform(rng, self.subpixel),
             }),
             grazing: Some(GrazingDropout {
@@ -297,7 +313,17 @@ impl SensorRanges {
                 count,
                 radius_px: (r.0 * object_px, r.1 * object_px),
             }),
+            shadow: None,
+        };
+        // Drawn last, and only when asked, so that sets without shadows draw as before.
+        if self.shadow_probability > 0.0 && rng.random_bool(self.shadow_probability.min(1.0)) {
+            let side = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+            sensor.shadow = Some(ProjectorShadow {
+                baseline_m: side * baseline,
+                focal_px,
+            });
         }
+        sensor
     }
 
     /// Whether every range is ordered and allowed (a message naming the first bad one).
@@ -337,6 +363,10 @@ impl SensorRanges {
             ),
             ("patch_count", self.patch_count.1 >= self.patch_count.0),
             ("patch_radius", ordered(self.patch_radius, 0.0)),
+            (
+                "shadow_probability",
+                (0.0..=1.0).contains(&self.shadow_probability),
+            ),
         ];
         match checks.iter().find(|c| !c.1) {
             Some((name, _)) => Err(format!(
@@ -729,7 +759,11 @@ pub(crate) fn render_view(
             .iter()
             .filter(|&&i| i == OBJECT_ID)
             .count();
-        ranges.draw(&mut sub(stream::SENSOR_DRAW), (object_pixels as f64).sqrt())
+        ranges.draw(
+            &mut sub(stream::SENSOR_DRAW),
+            (object_pixels as f64).sqrt(),
+            window.fx,
+        )
     });
     if let Some(s) = &sensor {
         let to_m = metres_per_unit as f32;
@@ -891,11 +925,54 @@ mod tests {
     }
 
     #[test]
+    fn projector_shadows_are_drawn_last_from_the_quantisation_baseline_on_either_side() {
+        let without = SensorRanges::default();
+        let with = SensorRanges {
+            shadow_probability: 1.0,
+            ..without
+        };
+        let (mut a, mut b) = (ChaCha8Rng::seed_from_u64(4), ChaCha8Rng::seed_from_u64(4));
+        let mut sides = [0usize; 2];
+        for _ in 0..100 {
+            let plain = without.draw(&mut a, 100.0, 210.0);
+            let shadowed = with.draw(&mut b, 100.0, 210.0);
+            assert_eq!(plain.shadow, None);
+            let shadow = shadowed.shadow.expect("probability 1");
+            // Everything else is the sensor the same stream drew without shadows.
+            assert_eq!(
+                SensorConfig {
+                    shadow: None,
+                    ..shadowed
+                },
+                plain
+            );
+            let Some(Quantisation::Disparity { baseline, .. }) = plain.quantisation else {
+                panic!("a disparity sensor")
+            };
+            assert_eq!(shadow.baseline_m.abs(), baseline);
+            assert_eq!(shadow.focal_px, 210.0);
+            sides[(shadow.baseline_m > 0.0) as usize] += 1;
+            // The next draw of both streams starts where the shadowed one ended.
+            a = b.clone();
+        }
+        assert!(sides.iter().all(|&n| n > 30), "{sides:?}");
+        let bad = SensorRanges {
+            shadow_probability: 1.5,
+            ..without
+        };
+        assert!(
+            bad.validate_ranges()
+                .unwrap_err()
+                .contains("shadow_probability")
+        );
+    }
+
+    #[test]
     fn drawn_sensors_stay_in_their_ranges() {
         let ranges = SensorRanges::default();
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         for _ in 0..200 {
-            let s = ranges.draw(&mut rng, 100.0);
+            let s = ranges.draw(&mut rng, 100.0, 525.0);
             let n = s.noise.unwrap();
             let k = n.a / AxialNoise::default().a;
             assert!((0.5 - 1e-9..=2.5 + 1e-9).contains(&k));

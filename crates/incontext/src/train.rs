@@ -459,6 +459,7 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
         core_radius: None,
         balance_area: None,
         border_weight: None,
+        shadow_probability: None,
     };
     let outcome =
         ic_train::seg::train_objects(&args, start.path(), corpus.clone(), corpus, control(c))

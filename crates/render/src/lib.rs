@@ -16,7 +16,7 @@
 //! Also here: seeded scene assembly ([`SceneBuilder`]: the object alone, or inside the
 //! paper's cube room of side 4 with bumpy walls, plus distractors and a support plane), sensor
 //! artefacts ([`SensorConfig`]: Kinect-style axial noise, quantisation, grazing-angle dropout,
-//! flying pixels, lateral jitter, dropout patches; all off by default), image I/O ([`io`]: 16-bit PNG depth with a BOP depth
+//! flying pixels, lateral jitter, dropout patches, the projector's shadows; all off by default), image I/O ([`io`]: 16-bit PNG depth with a BOP depth
 //! scale, 32-bit EXR, 8-bit masks, 16-bit instance ids, atomic writes) and a colour-mapped
 //! debug view ([`write_debug_png`]).
 //!
@@ -80,8 +80,8 @@ pub use scene::{
     RoomConfig, SUPPORT_ID, SceneBuilder, SceneConfig, SceneSample, SupportPlaneConfig,
 };
 pub use sensor::{
-    AxialNoise, DropoutPatches, FlyingPixels, GrazingDropout, LateralJitter, Quantisation,
-    SensorConfig,
+    AxialNoise, DropoutPatches, FlyingPixels, GrazingDropout, LateralJitter, ProjectorShadow,
+    Quantisation, SensorConfig,
 };
 
 /// With the `gpu` feature, the wgpu renderer when an adapter exists, else the CPU renderer (the

@@ -549,3 +549,34 @@ fn mirror_averaging_is_the_mean_of_both_passes_and_commutes_with_a_mirror() {
         assert!(!close(&b, &a), "{input:?}");
     }
 }
+
+#[test]
+fn every_preset_the_unknown_preset_error_names_exists_validates_and_round_trips() {
+    let err = SegConfig::preset("no-such-preset").unwrap_err().to_string();
+    let list = err
+        .split_once('(')
+        .and_then(|(_, rest)| rest.split_once(')'))
+        .map(|(list, _)| list)
+        .unwrap_or_else(|| panic!("no list of presets in {err:?}"));
+    let names: Vec<&str> = list.split('|').map(str::trim).collect();
+    assert!(names.len() >= 10, "{names:?}");
+    for name in names {
+        let cfg = SegConfig::preset(name).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(cfg.preset, name);
+        cfg.validate().unwrap_or_else(|e| panic!("{name}: {e}"));
+        let json = serde_json::to_string(&cfg).unwrap();
+        let back: SegConfig = serde_json::from_str(&json).unwrap();
+        assert_eq!(back, cfg, "{name}");
+    }
+    // The wider clutter presets start from `clutter-offsets` weights (`ic_train::widen`):
+    // as many levels, each at least as wide.
+    let base = SegConfig::preset("clutter-offsets").unwrap().net.channels;
+    for name in ["clutter-wide", "clutter-offsets-fine"] {
+        let wide = SegConfig::preset(name).unwrap().net.channels;
+        assert_eq!(wide.len(), base.len(), "{name}");
+        assert!(
+            wide.iter().zip(&base).all(|(w, b)| w >= b),
+            "{name}: {wide:?}"
+        );
+    }
+}

@@ -79,6 +79,17 @@ pub struct SegStepStats {
 }
 
 impl Trainer<UNet> {
+    /// Changes the probability that a clutter training scene's sensor casts the projector's
+    /// shadows from the next scene on (`SegTrainConfig::shadow_probability`); the
+    /// configuration saved with later checkpoints records it.
+    pub fn set_shadow_probability(&mut self, p: f64) -> Result<()> {
+        let mut cfg = self.config.clone();
+        cfg.train.shadow_probability = p;
+        cfg.validate()?;
+        self.config = cfg;
+        Ok(())
+    }
+
     /// Starts this network from a checkpoint with as many levels and at most as many channels
     /// per level ([`crate::widen`]: the copies of a channel share its weights, so the
     /// widened network computes what the checkpoint did), fewer outputs (one or two, where
@@ -342,6 +353,11 @@ pub struct TrainArgs {
     /// `--init` checkpoint's; a resumed run keeps its checkpoint's.
     #[arg(long)]
     pub border_weight: Option<f64>,
+    /// Clutter scenes: the probability that a training scene's sensor casts the projector's
+    /// shadows (`SegTrainConfig::shadow_probability`; 0: off). Default: the preset's or the
+    /// `--init` checkpoint's; a resumed run may change it (the scenes after the resume).
+    #[arg(long)]
+    pub shadow_probability: Option<f64>,
     /// Output folder: latest.safetensors (resumable), best.safetensors (weights), CSV logs.
     #[arg(long)]
     pub out: PathBuf,
@@ -447,6 +463,10 @@ pub struct EvalArgs {
     /// e.g. at the training resolution of the network, to tell what the input's size costs.
     #[arg(long, num_args = 2, value_names = ["WIDTH", "HEIGHT"])]
     pub render_size: Option<Vec<u32>>,
+    /// Clutter scenes: the probability that a scene's sensor casts the projector's shadows
+    /// (`ic_data::SensorRanges::shadow_probability`; default 0, as the benchmark's sets).
+    #[arg(long, default_value_t = 0.0)]
+    pub shadow_probability: f64,
     #[arg(long)]
     pub threads: Option<usize>,
 }
@@ -621,6 +641,16 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
                 );
             }
         }
+        if let Some(p) = args.shadow_probability
+            && p != t.config().train.shadow_probability
+        {
+            tracing::info!(
+                "projector shadows in {:.0} % of the scenes from iteration {}",
+                100.0 * p,
+                t.iteration()
+            );
+            t.set_shadow_probability(p)?;
+        }
         // As for the pose network: a resumed run may continue at another learning rate.
         if let Some(lr) = args.learning_rate {
             tracing::info!("learning rate {} from iteration {}", lr, t.iteration());
@@ -679,6 +709,9 @@ pub fn make_trainer(args: &TrainArgs, latest: &Path, init: Option<&Path>) -> Res
     }
     if let Some(v) = args.border_weight {
         cfg.train.border_weight = v;
+    }
+    if let Some(v) = args.shadow_probability {
+        cfg.train.shadow_probability = v;
     }
     let mut t = SegTrainer::new(cfg, args.seed)?;
     if let Some(p) = init {
@@ -962,7 +995,10 @@ pub fn train_objects(
             )
         }
         SceneKind::Clutter => {
-            let clutter = ClutterConfig::default().with_resolution(w, h);
+            let mut clutter = ClutterConfig::default().with_resolution(w, h);
+            if let Some(sensor) = &mut clutter.sensor {
+                sensor.shadow_probability = cfg.train.shadow_probability;
+            }
             tracing::info!("clutter scenes {}", serde_json::to_string(&clutter)?);
             let val_gen = ClutterGenerator::new(val_corpus, clutter.clone(), VALIDATION_SEED)?;
             let scenes: Vec<ClutterScene> = (0..args.validation_count)
@@ -1295,6 +1331,9 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     };
     if let Some(size) = &args.render_size {
         cfg = cfg.with_resolution(size[0], size[1]);
+    }
+    if let Some(sensor) = &mut cfg.sensor {
+        sensor.shadow_probability = args.shadow_probability;
     }
     let (width, height) = (cfg.intrinsics.width, cfg.intrinsics.height);
     let generator = Arc::new(ClutterGenerator::new(corpus, cfg.clone(), args.seed)?);

@@ -396,6 +396,7 @@ fn seg_args(out: &Path, iterations: u64, resume: bool) -> ic_train::seg::TrainAr
         core_radius: None,
         balance_area: None,
         border_weight: None,
+        shadow_probability: None,
     }
 }
 
@@ -499,6 +500,8 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
             oracle: false,
             oracle_maps: Vec::new(),
             core_radius: None,
+            render_size: None,
+            shadow_probability: 0.0,
             threads: None,
         };
         let report = ic_train::seg::eval(&args).unwrap();
@@ -537,6 +540,33 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
     let plain = eval(None, "plain");
     let with_support = eval(Some(0.01), "support");
     assert!(with_support >= plain, "{with_support} < {plain}");
+    // The same scenes at another size and with the projector's shadows, as asked.
+    let report = ic_train::seg::eval(&ic_train::seg::EvalArgs {
+        model: out.join("final.safetensors"),
+        scenes: "clutter".into(),
+        objects: "procedural@4:1".into(),
+        split: "test".into(),
+        count: 2,
+        seed: 5,
+        geometric: false,
+        depth_refine_px: None,
+        pixel_threshold: None,
+        support_height: None,
+        support_plane_threshold: None,
+        support_grow: false,
+        out: Some(dir.path().join("small-shadowed.json")),
+        misses: None,
+        oracle: false,
+        oracle_maps: Vec::new(),
+        core_radius: None,
+        render_size: Some(vec![160, 120]),
+        shadow_probability: 1.0,
+        threads: None,
+    })
+    .unwrap();
+    assert_eq!(report["resolution"], serde_json::json!([160, 120]));
+    assert_eq!(report["clutter"]["intrinsics"]["width"], 160);
+    assert_eq!(report["clutter"]["sensor"]["shadow_probability"], 1.0);
     // `--oracle` scores the post-processing on the training targets (at the tiny network's
     // 32×24, which loses the smallest instances): more instances than the two-iteration
     // network finds; room scenes refuse it. `--oracle-maps` with every map of the network is
@@ -564,6 +594,8 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
             oracle,
             oracle_maps: maps.to_vec(),
             core_radius,
+            render_size: None,
+            shadow_probability: 0.0,
             threads: None,
         })
     };
@@ -1052,4 +1084,32 @@ fn a_balanced_clutter_run_records_its_loss_weights_and_core_radius_and_a_resume_
         let err = ic_train::seg::train(&args, control(never())).unwrap_err();
         assert!(format!("{err:#}").contains(flag), "{err:#}");
     }
+}
+
+#[test]
+fn a_clutter_run_records_its_shadow_probability_and_a_resume_may_change_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("shadowed");
+    let shadow = |p: Option<f64>, iterations: u64, resume: bool| ic_train::seg::TrainArgs {
+        shadow_probability: p,
+        resume,
+        ..clutter_args(&out, iterations)
+    };
+    let read = || {
+        ic_seg::checkpoint::read_config(&out.join("latest.safetensors"))
+            .unwrap()
+            .train
+            .shadow_probability
+    };
+    let o = ic_train::seg::train(&shadow(Some(0.5), 2, false), control(never())).unwrap();
+    assert_eq!((o.ending, o.iteration), (Ending::Finished, 2));
+    assert_eq!(read(), 0.5);
+    // A resume without the flag keeps it; with it, the scenes after the resume follow it.
+    ic_train::seg::train(&shadow(None, 3, true), control(never())).unwrap();
+    assert_eq!(read(), 0.5);
+    ic_train::seg::train(&shadow(Some(1.0), 4, true), control(never())).unwrap();
+    assert_eq!(read(), 1.0);
+    // Not a probability: refused, naming it.
+    let err = ic_train::seg::train(&shadow(Some(1.5), 5, true), control(never())).unwrap_err();
+    assert!(format!("{err:#}").contains("shadow_probability"), "{err:#}");
 }

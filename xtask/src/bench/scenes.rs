@@ -133,6 +133,7 @@ fn ensure_clutter_data(
         noback_count: 0,
         room_count: 0,
         clutter_count: count,
+        shadow_probability: 0.0,
         workers: Some(workers),
     })?;
     install_partial(&partial, dir, &want)
