@@ -64,8 +64,9 @@ pub struct GenDataArgs {
     #[arg(long, default_value_t = 0)]
     pub clutter_count: u64,
     /// Cluttered scenes: the probability that a scene's sensor casts the projector's
-    /// shadows (`ic_data::SensorRanges::shadow_probability`: no return beside each nearer
-    /// edge, as structured-light sensors give; default 0, as the benchmark's sets).
+    /// shadows, and (drawn apart) that its depth is registered to a colour camera
+    /// (`ic_data::SensorRanges::set_shadows`: no return beside each nearer edge, on one side
+    /// and the other, as structured-light sensors give; default 0, as the benchmark's sets).
     #[arg(long, default_value_t = 0.0)]
     pub shadow_probability: f64,
     /// Worker threads (default: all cores).
@@ -288,7 +289,7 @@ pub fn gen_data(args: GenDataArgs) -> Result<()> {
         ..ClutterConfig::default()
     };
     if let Some(sensor) = &mut clutter_cfg.sensor {
-        sensor.shadow_probability = args.shadow_probability;
+        sensor.set_shadows(args.shadow_probability);
     }
     let clutter = if args.clutter_count > 0 {
         let g = Arc::new(ClutterGenerator::new(

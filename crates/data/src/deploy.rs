@@ -236,6 +236,13 @@ pub struct SensorRanges {
     /// focal (0.05–0.09 m with the default range), on the camera's right or left at even
     /// odds. 0 (the default) keeps every earlier set's draws.
     pub shadow_probability: f64,
+    /// The probability that the depth map is registered to a colour camera
+    /// ([`SensorConfig::registration`]: a second, narrower band of holes beside the edges, on
+    /// the other side), the depth camera `registration_baseline_m` away (Kinect v1 ≈ 0.025 m),
+    /// on the side opposite the projector when the sensor has one, else either. 0 (the
+    /// default) keeps every earlier set's draws.
+    pub registration_probability: f64,
+    pub registration_baseline_m: (f64, f64),
 }
 
 impl Default for SensorRanges {
@@ -251,6 +258,8 @@ impl Default for SensorRanges {
             patch_count: (0, 3),
             patch_radius: (0.03, 0.2),
             shadow_probability: 0.0,
+            registration_probability: 0.0,
+            registration_baseline_m: (0.02, 0.05),
         }
     }
 }
@@ -314,6 +323,7 @@ impl SensorRanges {
                 radius_px: (r.0 * object_px, r.1 * object_px),
             }),
             shadow: None,
+            registration: None,
         };
         // Drawn last, and only when asked, so that sets without shadows draw as before.
         if self.shadow_probability > 0.0 && rng.random_bool(self.shadow_probability.min(1.0)) {
@@ -323,7 +333,29 @@ impl SensorRanges {
                 focal_px,
             });
         }
+        if self.registration_probability > 0.0
+            && rng.random_bool(self.registration_probability.min(1.0))
+        {
+            let side = match sensor.shadow {
+                Some(s) => -s.baseline_m.signum(),
+                None if rng.random_bool(0.5) => 1.0,
+                None => -1.0,
+            };
+            sensor.registration = Some(ProjectorShadow {
+                baseline_m: side * uniform(rng, self.registration_baseline_m),
+                focal_px,
+            });
+        }
         sensor
+    }
+
+    /// A structured-light sensor whose depth is registered to a colour camera: the
+    /// projector's shadows and the registration's holes, each with probability `p`, drawn
+    /// independently ([`SensorRanges::shadow_probability`],
+    /// [`SensorRanges::registration_probability`]).
+    pub fn set_shadows(&mut self, p: f64) {
+        self.shadow_probability = p;
+        self.registration_probability = p;
     }
 
     /// Whether every range is ordered and allowed (a message naming the first bad one).
@@ -366,6 +398,14 @@ impl SensorRanges {
             (
                 "shadow_probability",
                 (0.0..=1.0).contains(&self.shadow_probability),
+            ),
+            (
+                "registration_probability",
+                (0.0..=1.0).contains(&self.registration_probability),
+            ),
+            (
+                "registration_baseline_m",
+                ordered(self.registration_baseline_m, 0.0),
             ),
         ];
         match checks.iter().find(|c| !c.1) {
@@ -965,6 +1005,27 @@ mod tests {
                 .unwrap_err()
                 .contains("shadow_probability")
         );
+        // Registered to a colour camera: the second band on the projector's other side, or
+        // on either side without a projector shadow.
+        let registered = SensorRanges {
+            registration_probability: 1.0,
+            ..with
+        };
+        let alone = SensorRanges {
+            registration_probability: 1.0,
+            ..without
+        };
+        let mut alone_sides = [0usize; 2];
+        for _ in 0..100 {
+            let s = registered.draw(&mut a, 100.0, 210.0);
+            let (p, r) = (s.shadow.unwrap(), s.registration.unwrap());
+            assert_eq!(p.baseline_m.signum(), -r.baseline_m.signum());
+            assert!((0.02..=0.05).contains(&r.baseline_m.abs()), "{r:?}");
+            let s = alone.draw(&mut a, 100.0, 210.0);
+            assert_eq!(s.shadow, None);
+            alone_sides[(s.registration.unwrap().baseline_m > 0.0) as usize] += 1;
+        }
+        assert!(alone_sides.iter().all(|&n| n > 30), "{alone_sides:?}");
     }
 
     #[test]

@@ -3,7 +3,8 @@
 //! the model to a rendering whose depth is in metres.
 //!
 //! Order: lateral jitter (depth, id and incidence move together, so edges move), the
-//! projector's shadows (on the jittered, otherwise clean depth), flying pixels (on the
+//! projector's shadows and the holes of registration to a colour camera (on the jittered,
+//! otherwise clean depth), flying pixels (on the
 //! depth edges left), grazing-angle dropout, dropout patches, axial noise, quantisation. A dropped pixel gets depth 0 (no return) but keeps its
 //! instance id, which stays the ground-truth segmentation of what is in front of the sensor.
 
@@ -207,6 +208,13 @@ pub struct SensorConfig {
     pub lateral_jitter: Option<LateralJitter>,
     pub dropout_patches: Option<DropoutPatches>,
     pub shadow: Option<ProjectorShadow>,
+    /// Depth registered to a colour camera beside the depth camera (what BOP's and most
+    /// drivers' depth maps are): the depth camera is then a "projector" on the colour
+    /// camera's x axis, and what it cannot see from there has no depth in the registered
+    /// map — a second band, beside the edges on the side away from the depth camera
+    /// (`baseline_m`: the depth camera's offset from the colour camera). Applied after
+    /// [`SensorConfig::shadow`].
+    pub registration: Option<ProjectorShadow>,
 }
 
 impl SensorConfig {
@@ -219,6 +227,7 @@ impl SensorConfig {
             && self.lateral_jitter.is_none()
             && self.dropout_patches.is_none()
             && self.shadow.is_none()
+            && self.registration.is_none()
     }
 
     /// Applies the configured effects in place; deterministic for a given `seed`. Effects
@@ -263,7 +272,7 @@ impl SensorConfig {
                 }
             }
         }
-        if let Some(shadow) = self.shadow {
+        for shadow in [self.shadow, self.registration].into_iter().flatten() {
             shadow.apply(r);
         }
         if let Some(f) = self.flying_pixels {
@@ -592,6 +601,26 @@ mod tests {
         assert_eq!(shadowed(0.075), (91..100).collect::<Vec<_>>());
         // To the left: right of the box.
         assert_eq!(shadowed(-0.075), (150..159).collect::<Vec<_>>());
+        // Registered to a colour camera 2.5 cm to the projector's side of the depth camera:
+        // the depth camera (2.5 cm the other way) leaves a narrower band on the other side: a
+        // disparity step of 525 · 0.025 · (1/0.8 − 1/1) = 3.3 px, of which the wall pixels
+        // hidden by more than the half-pixel tolerance are 2.
+        let mut r = box_before_wall();
+        SensorConfig {
+            shadow: Some(ProjectorShadow {
+                baseline_m: 0.05,
+                focal_px: 525.0,
+            }),
+            registration: Some(ProjectorShadow {
+                baseline_m: -0.025,
+                focal_px: 525.0,
+            }),
+            ..Default::default()
+        }
+        .apply(&mut r, 3);
+        let row = &r.depth.data[..r.depth.width as usize];
+        let holes: Vec<usize> = (0..row.len()).filter(|&u| row[u] == 0.0).collect();
+        assert_eq!(holes, [94, 95, 96, 97, 98, 99, 150, 151]);
         // A surface facing the camera and the projector casts none on itself.
         let mut wall = flat(1.0);
         let clean = wall.clone();

@@ -297,8 +297,10 @@ pub struct SegTrainConfig {
     #[serde(default, skip_serializing_if = "is_zero_f64")]
     pub border_weight: f64,
     /// Clutter scenes: the probability that a training scene's sensor casts the projector's
-    /// shadows (`ic_data::SensorRanges::shadow_probability`: no return beside each nearer
-    /// edge, as structured-light and active-stereo sensors give). Written only when on.
+    /// shadows, and, drawn apart, that its depth is registered to a colour camera
+    /// (`ic_data::SensorRanges::set_shadows`: no return beside each nearer edge, on one side
+    /// and the other, as structured-light and active-stereo sensors give). Written only when
+    /// on.
     #[serde(default, skip_serializing_if = "is_zero_f64")]
     pub shadow_probability: f64,
 }

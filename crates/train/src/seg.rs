@@ -354,7 +354,8 @@ pub struct TrainArgs {
     #[arg(long)]
     pub border_weight: Option<f64>,
     /// Clutter scenes: the probability that a training scene's sensor casts the projector's
-    /// shadows (`SegTrainConfig::shadow_probability`; 0: off). Default: the preset's or the
+    /// shadows, and (drawn apart) that its depth is registered to a colour camera, with the
+    /// registration's holes (`SegTrainConfig::shadow_probability`; 0: off). Default: the preset's or the
     /// `--init` checkpoint's; a resumed run may change it (the scenes after the resume).
     #[arg(long)]
     pub shadow_probability: Option<f64>,
@@ -463,8 +464,9 @@ pub struct EvalArgs {
     /// e.g. at the training resolution of the network, to tell what the input's size costs.
     #[arg(long, num_args = 2, value_names = ["WIDTH", "HEIGHT"])]
     pub render_size: Option<Vec<u32>>,
-    /// Clutter scenes: the probability that a scene's sensor casts the projector's shadows
-    /// (`ic_data::SensorRanges::shadow_probability`; default 0, as the benchmark's sets).
+    /// Clutter scenes: the probability that a scene's sensor casts the projector's shadows,
+    /// and (drawn apart) that its depth is registered to a colour camera
+    /// (`ic_data::SensorRanges::set_shadows`; default 0, as the benchmark's sets).
     #[arg(long, default_value_t = 0.0)]
     pub shadow_probability: f64,
     #[arg(long)]
@@ -997,7 +999,7 @@ pub fn train_objects(
         SceneKind::Clutter => {
             let mut clutter = ClutterConfig::default().with_resolution(w, h);
             if let Some(sensor) = &mut clutter.sensor {
-                sensor.shadow_probability = cfg.train.shadow_probability;
+                sensor.set_shadows(cfg.train.shadow_probability);
             }
             tracing::info!("clutter scenes {}", serde_json::to_string(&clutter)?);
             let val_gen = ClutterGenerator::new(val_corpus, clutter.clone(), VALIDATION_SEED)?;
@@ -1333,7 +1335,7 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
         cfg = cfg.with_resolution(size[0], size[1]);
     }
     if let Some(sensor) = &mut cfg.sensor {
-        sensor.shadow_probability = args.shadow_probability;
+        sensor.set_shadows(args.shadow_probability);
     }
     let (width, height) = (cfg.intrinsics.width, cfg.intrinsics.height);
     let generator = Arc::new(ClutterGenerator::new(corpus, cfg.clone(), args.seed)?);

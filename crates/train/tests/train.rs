@@ -567,6 +567,7 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
     assert_eq!(report["resolution"], serde_json::json!([160, 120]));
     assert_eq!(report["clutter"]["intrinsics"]["width"], 160);
     assert_eq!(report["clutter"]["sensor"]["shadow_probability"], 1.0);
+    assert_eq!(report["clutter"]["sensor"]["registration_probability"], 1.0);
     // `--oracle` scores the post-processing on the training targets (at the tiny network's
     // 32×24, which loses the smallest instances): more instances than the two-iteration
     // network finds; room scenes refuse it. `--oracle-maps` with every map of the network is
