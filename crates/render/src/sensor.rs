@@ -3,10 +3,11 @@
 //! the model to a rendering whose depth is in metres.
 //!
 //! Order: lateral jitter (depth, id and incidence move together, so edges move), the
-//! projector's shadows and the holes of registration to a colour camera (on the jittered,
-//! otherwise clean depth), flying pixels (on the
-//! depth edges left), grazing-angle dropout, dropout patches, axial noise, quantisation. A dropped pixel gets depth 0 (no return) but keeps its
-//! instance id, which stays the ground-truth segmentation of what is in front of the sensor.
+//! projector's shadows and the holes of registration to a colour camera (both on the
+//! jittered, otherwise clean depth), flying pixels (on the depth edges left), grazing-angle
+//! dropout, dropout patches, axial noise, quantisation. A dropped pixel gets depth 0 (no
+//! return) but keeps its instance id, which stays the ground-truth segmentation of what is in
+//! front of the sensor.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -151,17 +152,14 @@ pub struct ProjectorShadow {
 const SHADOW_TOLERANCE_PX: f64 = 0.5;
 
 impl ProjectorShadow {
-    /// Zeroes the depth of the hidden pixels of `r` (metres); ids stay.
-    fn apply(&self, r: &mut Rendering) {
+    /// Marks in `hidden` (one flag per pixel, row-major) the pixels of `depth` (metres, 0 =
+    /// no return) that a nearer surface hides from the projector.
+    fn mark_hidden(&self, depth: &[f32], width: usize, hidden: &mut [bool]) {
         let fb = self.focal_px * self.baseline_m;
-        if !(fb.is_finite() && fb != 0.0) {
+        if !(fb.is_finite() && fb != 0.0) || width == 0 {
             return;
         }
-        let (w, h) = (r.depth.width as usize, r.depth.height as usize);
-        let mut hidden = vec![false; w];
-        for v in 0..h {
-            let row = &mut r.depth.data[v * w..(v + 1) * w];
-            hidden.iter_mut().for_each(|x| *x = false);
+        for (row, hidden) in depth.chunks(width).zip(hidden.chunks_mut(width)) {
             // Walk from the projector's side; `reach`: the smallest (projector right) or
             // largest (left) projector column of the pixels walked.
             let mut reach: Option<f64> = None;
@@ -184,14 +182,9 @@ impl ProjectorShadow {
                 }
             };
             if fb > 0.0 {
-                (0..w).rev().for_each(&mut visit);
+                (0..row.len()).rev().for_each(&mut visit);
             } else {
-                (0..w).for_each(&mut visit);
-            }
-            for (z, &gone) in row.iter_mut().zip(&hidden) {
-                if gone {
-                    *z = 0.0;
-                }
+                (0..row.len()).for_each(&mut visit);
             }
         }
     }
@@ -212,8 +205,8 @@ pub struct SensorConfig {
     /// drivers' depth maps are): the depth camera is then a "projector" on the colour
     /// camera's x axis, and what it cannot see from there has no depth in the registered
     /// map — a second band, beside the edges on the side away from the depth camera
-    /// (`baseline_m`: the depth camera's offset from the colour camera). Applied after
-    /// [`SensorConfig::shadow`].
+    /// (`baseline_m`: the depth camera's offset from the colour camera). Found on the same
+    /// depth as [`SensorConfig::shadow`].
     pub registration: Option<ProjectorShadow>,
 }
 
@@ -272,8 +265,17 @@ impl SensorConfig {
                 }
             }
         }
-        for shadow in [self.shadow, self.registration].into_iter().flatten() {
-            shadow.apply(r);
+        if self.shadow.is_some() || self.registration.is_some() {
+            // Both from the same surfaces: what hides a point is geometry, not a return.
+            let mut hidden = vec![false; w * h];
+            for shadow in [self.shadow, self.registration].into_iter().flatten() {
+                shadow.mark_hidden(&r.depth.data, w, &mut hidden);
+            }
+            for (z, gone) in r.depth.data.iter_mut().zip(hidden) {
+                if gone {
+                    *z = 0.0;
+                }
+            }
         }
         if let Some(f) = self.flying_pixels {
             let clean = r.depth.data.clone();
