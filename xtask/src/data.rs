@@ -283,14 +283,12 @@ pub fn gen_data(args: GenDataArgs) -> Result<()> {
     bar.finish();
     let room = writer.finish()?;
     let below5 = rates.0.iter().filter(|&&r| r < 0.05).count();
-    let mut clutter_cfg = ClutterConfig {
+    let clutter_cfg = ClutterConfig {
         fixed_sizes: true,
         full_masks: true,
         ..ClutterConfig::default()
-    };
-    if let Some(sensor) = &mut clutter_cfg.sensor {
-        sensor.set_shadows(args.shadow_probability);
     }
+    .with_shadows(args.shadow_probability);
     let clutter = if args.clutter_count > 0 {
         let g = Arc::new(ClutterGenerator::new(
             corpus.clone(),

@@ -128,6 +128,15 @@ impl ClutterConfig {
         self
     }
 
+    /// The same scenes with the projector's shadows and the registration's holes, each with
+    /// probability `p` (`SensorRanges::set_shadows`); no change with an ideal sensor.
+    pub fn with_shadows(mut self, p: f64) -> Self {
+        if let Some(sensor) = &mut self.sensor {
+            sensor.set_shadows(p);
+        }
+        self
+    }
+
     pub fn validate(&self) -> Result<(), DataError> {
         let bad = |field: &'static str, message: String| Err(DataError::Config { field, message });
         self.intrinsics.validate().map_err(|e| DataError::Config {

@@ -997,10 +997,9 @@ pub fn train_objects(
             )
         }
         SceneKind::Clutter => {
-            let mut clutter = ClutterConfig::default().with_resolution(w, h);
-            if let Some(sensor) = &mut clutter.sensor {
-                sensor.set_shadows(cfg.train.shadow_probability);
-            }
+            let clutter = ClutterConfig::default()
+                .with_resolution(w, h)
+                .with_shadows(cfg.train.shadow_probability);
             tracing::info!("clutter scenes {}", serde_json::to_string(&clutter)?);
             let val_gen = ClutterGenerator::new(val_corpus, clutter.clone(), VALIDATION_SEED)?;
             let scenes: Vec<ClutterScene> = (0..args.validation_count)
@@ -1334,9 +1333,7 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     if let Some(size) = &args.render_size {
         cfg = cfg.with_resolution(size[0], size[1]);
     }
-    if let Some(sensor) = &mut cfg.sensor {
-        sensor.set_shadows(args.shadow_probability);
-    }
+    cfg = cfg.with_shadows(args.shadow_probability);
     let (width, height) = (cfg.intrinsics.width, cfg.intrinsics.height);
     let generator = Arc::new(ClutterGenerator::new(corpus, cfg.clone(), args.seed)?);
     tracing::info!(

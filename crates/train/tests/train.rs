@@ -3,7 +3,7 @@
 //! without duplicated or missing iterations, and a stop request or a deadline saves a
 //! checkpoint. Seconds each.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
@@ -401,6 +401,33 @@ fn seg_args(out: &Path, iterations: u64, resume: bool) -> ic_train::seg::TrainAr
 }
 
 /// [`seg_args`] of a tiny two-output network on clutter scenes of four procedural objects.
+/// `eval-seg --scenes clutter` on `count` scenes of four procedural objects (seed 5) with the
+/// checkpoint `model`, the report at `out`; every option at its default.
+fn clutter_eval_args(model: PathBuf, count: u64, out: PathBuf) -> ic_train::seg::EvalArgs {
+    ic_train::seg::EvalArgs {
+        model,
+        scenes: "clutter".into(),
+        objects: "procedural@4:1".into(),
+        split: "test".into(),
+        count,
+        seed: 5,
+        geometric: false,
+        depth_refine_px: None,
+        pixel_threshold: None,
+        support_height: None,
+        support_plane_threshold: None,
+        support_grow: false,
+        out: Some(out),
+        misses: None,
+        oracle: false,
+        oracle_maps: Vec::new(),
+        core_radius: None,
+        render_size: None,
+        shadow_probability: 0.0,
+        threads: None,
+    }
+}
+
 fn clutter_args(out: &Path, iterations: u64) -> ic_train::seg::TrainArgs {
     ic_train::seg::TrainArgs {
         preset: "tiny-clutter".into(),
@@ -483,26 +510,9 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
         let report_path = dir.path().join(format!("{name}.json"));
         let misses = dir.path().join(format!("{name}-misses"));
         let args = ic_train::seg::EvalArgs {
-            model: out.join("final.safetensors"),
-            scenes: "clutter".into(),
-            objects: "procedural@4:1".into(),
-            split: "test".into(),
-            count: 3,
-            seed: 5,
-            geometric: false,
-            depth_refine_px: None,
-            pixel_threshold: None,
             support_height,
-            support_plane_threshold: None,
-            support_grow: false,
-            out: Some(report_path.clone()),
             misses: Some(misses.clone()),
-            oracle: false,
-            oracle_maps: Vec::new(),
-            core_radius: None,
-            render_size: None,
-            shadow_probability: 0.0,
-            threads: None,
+            ..clutter_eval_args(out.join("final.safetensors"), 3, report_path.clone())
         };
         let report = ic_train::seg::eval(&args).unwrap();
         let csv = std::fs::read_to_string(report_path.with_extension("csv")).unwrap();
@@ -542,26 +552,13 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
     assert!(with_support >= plain, "{with_support} < {plain}");
     // The same scenes at another size and with the projector's shadows, as asked.
     let report = ic_train::seg::eval(&ic_train::seg::EvalArgs {
-        model: out.join("final.safetensors"),
-        scenes: "clutter".into(),
-        objects: "procedural@4:1".into(),
-        split: "test".into(),
-        count: 2,
-        seed: 5,
-        geometric: false,
-        depth_refine_px: None,
-        pixel_threshold: None,
-        support_height: None,
-        support_plane_threshold: None,
-        support_grow: false,
-        out: Some(dir.path().join("small-shadowed.json")),
-        misses: None,
-        oracle: false,
-        oracle_maps: Vec::new(),
-        core_radius: None,
         render_size: Some(vec![160, 120]),
         shadow_probability: 1.0,
-        threads: None,
+        ..clutter_eval_args(
+            out.join("final.safetensors"),
+            2,
+            dir.path().join("small-shadowed.json"),
+        )
     })
     .unwrap();
     assert_eq!(report["resolution"], serde_json::json!([160, 120]));
@@ -575,29 +572,16 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
     use ic_train::seg::OracleMap;
     let run = |scenes: &str, oracle: bool, maps: &[OracleMap], core_radius: Option<usize>| {
         ic_train::seg::eval(&ic_train::seg::EvalArgs {
-            model: out.join("final.safetensors"),
             scenes: scenes.into(),
-            objects: "procedural@4:1".into(),
-            split: "test".into(),
-            count: 4,
-            seed: 5,
-            geometric: false,
-            depth_refine_px: None,
-            pixel_threshold: None,
-            support_height: None,
-            support_plane_threshold: None,
-            support_grow: false,
-            out: Some(
-                dir.path()
-                    .join(format!("{scenes}-{oracle}-{}.json", maps.len())),
-            ),
-            misses: None,
             oracle,
             oracle_maps: maps.to_vec(),
             core_radius,
-            render_size: None,
-            shadow_probability: 0.0,
-            threads: None,
+            ..clutter_eval_args(
+                out.join("final.safetensors"),
+                4,
+                dir.path()
+                    .join(format!("{scenes}-{oracle}-{}.json", maps.len())),
+            )
         })
     };
     let recall = |r: &serde_json::Value| r["instances"]["recall"].as_f64().unwrap();
