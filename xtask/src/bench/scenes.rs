@@ -6,8 +6,12 @@
 //!   on; `ic_data::clutter` as `gen-data --clutter-count` writes them, a BOP dataset under
 //!   `<work>/clutter-data/`). The shipped clutter segmentation network is scored on every
 //!   object's instance (`ic_train::seg::scene_instances`: target found, recall, matched IoU,
-//!   over- and under-segmentation), and `incontext eval --dataset` runs `register`'s default
-//!   method on every target (ADD-S to the nearest true instance, rotation, time).
+//!   over- and under-segmentation), once on the scenes as the benchmark's sensor draws them and
+//!   once on the same scenes with the projector's shadows and the registration's holes in every
+//!   one (`ClutterConfig::with_shadows(1.0)`: those draws come last, so the scenes are the same
+//!   but for the bands without a return that real structured-light maps have), and
+//!   `incontext eval --dataset` runs `register`'s default method on every target (ADD-S to the
+//!   nearest true instance, rotation, time).
 //! - **Real frames** (`../shared/data/real/*/`, no ground truth): `incontext eval --frames`
 //!   registers each frame as `register` and `register --all` do and judges each pose by
 //!   rendering it against the depth map (agreement within 10 mm, pixels in front).
@@ -50,6 +54,9 @@ pub struct ClutterReport {
     pub dir: PathBuf,
     /// `ic_eval::instances::InstanceSummary` of the clutter network, or why it is missing.
     pub segmentation: Result<Value, String>,
+    /// The same on the same scenes with the projector's shadows and the registration's holes
+    /// in every one, or why it is missing.
+    pub segmentation_shadowed: Result<Value, String>,
     /// The `incontext --json eval --dataset` report (its `datasets.clutter.results`), or why
     /// it is missing.
     pub pipeline: Result<Value, String>,
@@ -139,12 +146,25 @@ fn ensure_clutter_data(
     install_partial(&partial, dir, &want)
 }
 
-/// The clutter network's instances against every object's on the same scenes.
-fn clutter_segmentation(root: &Path, corpus: Arc<Corpus>, seed: u64, count: u64) -> Result<Value> {
+/// The clutter network's instances against every object's on the same scenes; with
+/// `shadows`, every scene also has the projector's shadows and the registration's holes.
+fn clutter_segmentation(
+    root: &Path,
+    corpus: Arc<Corpus>,
+    seed: u64,
+    count: u64,
+    shadows: bool,
+) -> Result<Value> {
     let seg = ic_seg::Segmenter::load(&root.join(CLUTTER_SEG_MODEL))
         .with_context(|| format!("loading {CLUTTER_SEG_MODEL}"))?;
-    let g = ClutterGenerator::new(corpus, clutter_config(), seed)?;
-    let bar = crate::bench::common::progress_bar(count, "clutter segmentation");
+    let config = clutter_config().with_shadows(if shadows { 1.0 } else { 0.0 });
+    let g = ClutterGenerator::new(corpus, config, seed)?;
+    let label = if shadows {
+        "clutter segmentation, shadowed"
+    } else {
+        "clutter segmentation"
+    };
+    let bar = crate::bench::common::progress_bar(count, label);
     let mut matches = Vec::new();
     for i in 0..count {
         let scene = g.scene(i)?;
@@ -173,11 +193,16 @@ pub fn clutter(
     let t0 = Instant::now();
     let dir = work.join("clutter-data");
     ensure_clutter_data(objects, seed, count, &dir, threads)?;
-    let segmentation = if root.join(CLUTTER_SEG_MODEL).is_file() {
+    let (segmentation, segmentation_shadowed) = if root.join(CLUTTER_SEG_MODEL).is_file() {
         let corpus = Arc::new(objects.corpus(Split::Test, seed)?);
-        clutter_segmentation(root, corpus, seed, count).map_err(|e| format!("{e:#}"))
+        let run = |shadows| {
+            clutter_segmentation(root, corpus.clone(), seed, count, shadows)
+                .map_err(|e| format!("{e:#}"))
+        };
+        (run(false), run(true))
     } else {
-        Err(format!("{CLUTTER_SEG_MODEL} is absent"))
+        let why = format!("{CLUTTER_SEG_MODEL} is absent");
+        (Err(why.clone()), Err(why))
     };
     let runs = work.join("runs/clutter");
     let saved = work.join("runs/clutter.json");
@@ -208,6 +233,7 @@ pub fn clutter(
         scenes: count,
         dir: crate::bench::common::rel(&dir),
         segmentation,
+        segmentation_shadowed,
         pipeline,
         seconds: t0.elapsed().as_secs_f64(),
     })
