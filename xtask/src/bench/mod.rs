@@ -602,11 +602,28 @@ pub fn run(args: BenchArgs) -> Result<()> {
 }
 
 /// What `--strict` refuses: an unusable CLI, a method that failed to run or to be scored,
-/// peers that were asked for and could not run, a set without any of our results.
+/// peers that were asked for and could not run, a set without any of our results, a clutter
+/// measurement that failed (other than for an absent network or the unusable CLI).
 fn strict_problems(report: &Report) -> Vec<String> {
     let mut out = Vec::new();
-    if let Some(why) = report.cli.as_ref().and_then(|c| c.unusable.as_ref()) {
+    let unusable = report.cli.as_ref().and_then(|c| c.unusable.as_ref());
+    if let Some(why) = unusable {
         out.push(why.clone());
+    }
+    if let Some(c) = &report.clutter {
+        let parts = [
+            ("clutter segmentation", &c.segmentation),
+            ("clutter segmentation, shadowed", &c.segmentation_shadowed),
+            ("clutter pipeline", &c.pipeline),
+        ];
+        for (label, result) in parts {
+            if let Err(why) = result
+                && !why.ends_with(" is absent")
+                && unusable.is_none_or(|u| u != why)
+            {
+                out.push(format!("{label}: {why}"));
+            }
+        }
     }
     for set in &report.sets {
         for (label, reason) in &set.missing {
@@ -625,4 +642,51 @@ fn strict_problems(report: &Report) -> Vec<String> {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bench::report::{Config, Report};
+    use crate::bench::scenes::ClutterReport;
+
+    fn clutter(
+        segmentation: Result<serde_json::Value, String>,
+        shadowed: Result<serde_json::Value, String>,
+        pipeline: Result<serde_json::Value, String>,
+    ) -> Report {
+        let tmp = tempfile::tempdir().unwrap();
+        let mut report = Report::start(&crate::workspace_root(), &Config::for_tests(tmp.path()));
+        report.clutter = Some(ClutterReport {
+            scenes: 3,
+            dir: "clutter-data".into(),
+            segmentation,
+            segmentation_shadowed: shadowed,
+            pipeline,
+            seconds: 1.0,
+        });
+        report
+    }
+
+    #[test]
+    fn strict_refuses_a_failed_clutter_measurement_but_not_an_absent_network() {
+        let ok = || Ok(serde_json::json!({"images": 3}));
+        assert!(strict_problems(&clutter(ok(), ok(), ok())).is_empty());
+        let absent = || Err(format!("{} is absent", scenes::CLUTTER_SEG_MODEL));
+        assert!(strict_problems(&clutter(absent(), absent(), ok())).is_empty());
+        let problems = strict_problems(&clutter(
+            ok(),
+            Err("scene 2: no object could be placed".into()),
+            ok(),
+        ));
+        assert_eq!(
+            problems,
+            vec!["clutter segmentation, shadowed: scene 2: no object could be placed".to_string()]
+        );
+        let problems = strict_problems(&clutter(ok(), ok(), Err("exit 2: bad dataset".into())));
+        assert_eq!(
+            problems,
+            vec!["clutter pipeline: exit 2: bad dataset".to_string()]
+        );
+    }
 }

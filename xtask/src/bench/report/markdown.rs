@@ -1135,31 +1135,6 @@ mod tests {
     use ic_geometry::Pose;
     use ic_geometry::glam::DVec3;
 
-    /// A quick run's configuration writing under `dir`, without peers or speed.
-    fn quick_config(dir: &Path) -> Config {
-        Config {
-            quick: true,
-            peers: false,
-            seed: 1,
-            noback_count: 1,
-            room_count: 1,
-            real_count: 0,
-            real_objects: None,
-            ppf_cases: 1,
-            ppf_repeats: 1,
-            threads: 1,
-            repeats: 1,
-            timing_pairs: 1,
-            curve_cases: 0,
-            train_steps: 1,
-            out: dir.into(),
-            work: dir.into(),
-            objects: serde_json::json!({"kind": "procedural", "count": 3}),
-            speed: false,
-            resume: false,
-        }
-    }
-
     /// Two cases; a PPF peer with lines for the first only and `case_limit` 1 is scored on that
     /// one case (not failed on the second), an Open3D peer with the same lines is not; the
     /// tables say so, and the goal table shows the best PPF method beside Open3D's.
@@ -1206,7 +1181,7 @@ mod tests {
         let config = Config {
             peers: true,
             noback_count: 2,
-            ..quick_config(tmp.path())
+            ..Config::for_tests(tmp.path())
         };
         let mut report = Report::start(&crate::workspace_root(), &config);
         report.opencv_version = Some("4.11.0".into());
@@ -1321,7 +1296,7 @@ mod tests {
         let config = Config {
             noback_count: 1,
             real_count: 2,
-            ..quick_config(tmp.path())
+            ..Config::for_tests(tmp.path())
         };
         let mut report = Report::start(&crate::workspace_root(), &config);
         report

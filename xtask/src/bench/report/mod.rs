@@ -56,6 +56,34 @@ pub struct Config {
     pub resume: bool,
 }
 
+impl Config {
+    /// A quick run's configuration writing under `dir`, without peers or speed (the tests').
+    #[cfg(test)]
+    pub(crate) fn for_tests(dir: &Path) -> Config {
+        Config {
+            quick: true,
+            peers: false,
+            seed: 1,
+            noback_count: 1,
+            room_count: 1,
+            real_count: 0,
+            real_objects: None,
+            ppf_cases: 1,
+            ppf_repeats: 1,
+            threads: 1,
+            repeats: 1,
+            timing_pairs: 1,
+            curve_cases: 0,
+            train_steps: 1,
+            out: dir.into(),
+            work: dir.into(),
+            objects: serde_json::json!({"kind": "procedural", "count": 3}),
+            speed: false,
+            resume: false,
+        }
+    }
+}
+
 /// One case set's scores.
 #[derive(Clone, Debug, Serialize)]
 pub struct SetReport {
