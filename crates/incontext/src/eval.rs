@@ -728,6 +728,17 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                     )
                 })
                 .collect::<std::result::Result<_, _>>()?;
+            // BOP's rule: a target of `inst_count` instances is scored on its `inst_count`
+            // most visible true instances; a copy hidden behind the others is not a target.
+            let keep = most_visible(
+                &samples.iter().map(visible_fraction).collect::<Vec<_>>(),
+                target.inst_count,
+            );
+            let gt_indices: Vec<usize> = keep.iter().map(|&k| gt_indices[k]).collect();
+            let mut samples: Vec<Option<ic_data::RoomSample>> =
+                samples.into_iter().map(Some).collect();
+            let samples: Vec<ic_data::RoomSample> =
+                keep.iter().filter_map(|&k| samples[k].take()).collect();
             let first = &samples[0];
             if !objects.contains_key(&first.object_id) {
                 let corpus = ds.corpus();
@@ -804,9 +815,11 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                 let found: Vec<&Registration> =
                     estimates.iter().filter_map(|e| e.as_ref().ok()).collect();
                 // Each estimate (best first) claims the unclaimed true instance nearest it
-                // (ADD-S); a true instance no estimate claims is a failure.
+                // (ADD-S); with --gt-mask, the estimate from an instance's own mask is that
+                // instance's. A true instance no estimate claims is a failure.
                 let mut claimed: Vec<Option<&Registration>> = vec![None; samples.len()];
-                for (k, r) in found.iter().enumerate() {
+                for (k, r) in estimates.iter().enumerate() {
+                    let Ok(r) = r else { continue };
                     let near = if args.gt_mask {
                         Some(k)
                     } else {
@@ -972,6 +985,28 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
 /// for `target`, its errors to the nearest true instance (ADD-S; normalised units, `add_s`
 /// divided by the `diameter`), the best IoU of its mask with a true instance's visible mask,
 /// and what the verdict rests on.
+/// The visible share of a true instance, as BOP's `visib_fract`: its visible pixels over the
+/// pixels of its whole silhouette (`mask_visib/` over `mask/`; the visible mask stands in for
+/// a missing whole one, so 1 when only the visible mask exists, 0 when neither does).
+fn visible_fraction(sample: &ic_data::RoomSample) -> f64 {
+    let visible = sample.mask_visib.data.iter().filter(|&&m| m).count();
+    let all = sample.mask_all.data.iter().filter(|&&m| m).count();
+    if all == 0 {
+        return 0.0;
+    }
+    (visible as f64 / all as f64).min(1.0)
+}
+
+/// The positions of the `count` most visible of the given instances' visible shares, most
+/// visible first (equal shares in their order): the true instances BOP scores a target of
+/// `count` instances on.
+fn most_visible(fractions: &[f64], count: usize) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..fractions.len()).collect();
+    order.sort_by(|&a, &b| fractions[b].total_cmp(&fractions[a]));
+    order.truncate(count);
+    order
+}
+
 fn candidate_line(
     target: &BopTarget,
     method: &str,
@@ -1175,6 +1210,15 @@ fn run_frames(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Res
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_target_is_scored_on_its_inst_count_most_visible_instances_in_order_of_visibility() {
+        // A copy hidden behind the others (0) is left out; equal shares keep their order.
+        assert_eq!(most_visible(&[0.0, 0.8, 0.3, 0.8], 2), [1, 3]);
+        assert_eq!(most_visible(&[0.0, 0.8, 0.3, 0.8], 3), [1, 3, 2]);
+        assert_eq!(most_visible(&[0.5], 4), [0]);
+        assert!(most_visible(&[0.5, 0.2], 0).is_empty());
+    }
 
     #[test]
     fn methods_parse_with_defaults_and_without_duplicates() {

@@ -200,14 +200,13 @@ fn a_scene_whose_only_object_is_not_the_model_is_not_found() {
     }
 }
 
-#[test]
-fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
+/// A BOP clutter set of `images` images at 320×240 (mm, 0.1 mm depth steps), each with two
+/// copies of the target and two or three other objects, written to `root`.
+fn write_clutter_bop(root: &Path, images: u64) {
     use ic_data::bop::{BopWriteOptions, BopWriter};
     use ic_data::{ClutterConfig, ClutterGenerator, Corpus, CorpusOptions, Split};
-    let dir = tempfile::tempdir().unwrap();
     let corpus =
         Arc::new(Corpus::procedural(4, Split::Test, 21, CorpusOptions::default()).unwrap());
-    // Two images, each with two copies of the target and two or three other objects.
     let cfg = ClutterConfig {
         fixed_sizes: true,
         full_masks: true,
@@ -219,19 +218,38 @@ fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
         ..ClutterConfig::default().with_resolution(320, 240)
     };
     let g = ClutterGenerator::new(corpus, cfg, 5).unwrap();
-    let root = dir.path().join("clutter-bop");
     let mut w = BopWriter::create(
-        &root,
+        root,
         BopWriteOptions {
             depth_scale: 0.1,
             ..BopWriteOptions::default()
         },
     )
     .unwrap();
-    for i in 0..2 {
+    for i in 0..images {
         w.add_clutter(&g.scene(i).unwrap()).unwrap();
     }
     w.finish().unwrap();
+}
+
+fn read_json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+fn jsonl(path: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
+#[test]
+fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
+    let dir = tempfile::tempdir().unwrap();
+    // Two images, each with two copies of the target and two or three other objects.
+    let root = dir.path().join("clutter-bop");
+    write_clutter_bop(&root, 2);
     let out = dir.path().join("eval");
     let o = check(
         &[
@@ -251,17 +269,11 @@ fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
     let report = json_stdout(&o);
     assert_eq!(report["mode"], "dataset");
     // Every true instance of every target has a line (two per image here).
-    let lines: Vec<serde_json::Value> = std::fs::read_to_string(out.join("per_image.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
-    let targets: Vec<serde_json::Value> = serde_json::from_str(
-        &std::fs::read_to_string(root.join("test_targets_bop19.json")).unwrap(),
-    )
-    .unwrap();
+    let lines = jsonl(&out.join("per_image.jsonl"));
+    let targets = read_json(&root.join("test_targets_bop19.json"));
+    let targets = targets.as_array().unwrap();
     assert_eq!(targets.len(), 2);
-    for t in &targets {
+    for t in targets {
         let n = lines
             .iter()
             .filter(|l| l["im_id"] == t["im_id"] && l["obj_id"] == t["obj_id"])
@@ -285,6 +297,94 @@ fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
         assert_eq!(*t, cols[6], "image {} has two times", cols[1]);
     }
     assert!(!time_of.is_empty());
+}
+
+/// BOP scores a target of `inst_count` instances on its `inst_count` most visible true
+/// instances, and with `--gt-mask` each instance's pose comes from its own mask — even when
+/// the registration of an instance before it fails.
+#[test]
+fn eval_dataset_scores_the_most_visible_copies_and_each_copy_by_its_own_mask() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("clutter-bop");
+    write_clutter_bop(&root, 1);
+    let scene = root.join("test/000000");
+    let target = &read_json(&root.join("test_targets_bop19.json"))[0];
+    assert_eq!(target["inst_count"], 2, "{target}");
+    let mut gt = read_json(&scene.join("scene_gt.json"));
+    let list = gt["0"].as_array_mut().unwrap();
+    let copies: Vec<usize> = (0..list.len())
+        .filter(|&g| list[g]["obj_id"] == target["obj_id"])
+        .collect();
+    assert_eq!(copies.len(), 2);
+    // A third copy, hidden behind the others: annotated, no pixel visible.
+    let hidden = list.len();
+    let mut entry = list[copies[0]].clone();
+    entry["cam_t_m2c"][2] = json!(entry["cam_t_m2c"][2].as_f64().unwrap() + 300.0);
+    list.push(entry);
+    std::fs::write(scene.join("scene_gt.json"), gt.to_string()).unwrap();
+    let mask_file = |folder: &str, g: usize| scene.join(folder).join(format!("000000_{g:06}.png"));
+    let mut block = Image::filled(320, 240, false);
+    for v in 100..110 {
+        for u in 100..110 {
+            block.data[v * 320 + u] = true;
+        }
+    }
+    ic_render::io::write_mask_png(mask_file("mask", hidden), &block).unwrap();
+    ic_render::io::write_mask_png(
+        mask_file("mask_visib", hidden),
+        &Image::filled(320, 240, false),
+    )
+    .unwrap();
+    // The first copy keeps 4 pixels, all of its silhouette (the most visible), too few to
+    // register: its estimate fails, and the second copy's must not take its place.
+    let mut tiny = Image::filled(320, 240, false);
+    let first_visible =
+        ic_render::io::read_mask_png(mask_file("mask_visib", copies[0]), Some((320, 240))).unwrap();
+    let at = first_visible.data.iter().position(|&m| m).unwrap();
+    for d in [0, 1, 320, 321] {
+        tiny.data[(at + d).min(320 * 240 - 1)] = true;
+    }
+    for folder in ["mask", "mask_visib"] {
+        ic_render::io::write_mask_png(mask_file(folder, copies[0]), &tiny).unwrap();
+    }
+    let out = dir.path().join("eval");
+    check(
+        &[
+            "eval",
+            "--dataset",
+            s(&root),
+            "--gt-mask",
+            "--out",
+            s(&out),
+            "--json",
+            "--seed",
+            "3",
+        ],
+        0,
+        &[],
+    );
+    let lines = jsonl(&out.join("per_image.jsonl"));
+    assert_eq!(
+        lines.len(),
+        2,
+        "the hidden copy is not a target: {lines:#?}"
+    );
+    let of = |g: usize| {
+        lines
+            .iter()
+            .find(|l| l["gt_index"] == g)
+            .unwrap_or_else(|| panic!("no line for copy {g}: {lines:#?}"))
+    };
+    assert_eq!(of(copies[0])["ok"], false, "{lines:#?}");
+    assert!(
+        of(copies[0])["error"]
+            .as_str()
+            .unwrap()
+            .contains("object points"),
+        "{lines:#?}"
+    );
+    assert_eq!(of(copies[1])["ok"], true, "{lines:#?}");
+    assert!(of(copies[1])["errors"]["add_s"].is_number(), "{lines:#?}");
 }
 
 #[test]
