@@ -981,10 +981,6 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
     )
 }
 
-/// One line of `candidates.jsonl`: a registration of one of the segmentation's instances
-/// for `target`, its errors to the nearest true instance (ADD-S; normalised units, `add_s`
-/// divided by the `diameter`), the best IoU of its mask with a true instance's visible mask,
-/// and what the verdict rests on.
 /// The visible share of a true instance, as BOP's `visib_fract`: its visible pixels over the
 /// pixels of its whole silhouette (`mask_visib/` over `mask/`; the visible mask stands in for
 /// a missing whole one, so 1 when only the visible mask exists, 0 when neither does).
@@ -1007,6 +1003,10 @@ fn most_visible(fractions: &[f64], count: usize) -> Vec<usize> {
     order
 }
 
+/// One line of `candidates.jsonl`: a registration of one of the segmentation's instances
+/// for `target`, its errors to the nearest of its scored true instances (ADD-S; normalised units, `add_s`
+/// divided by the `diameter`), the best IoU of its mask with a true instance's visible mask,
+/// and what the verdict rests on.
 fn candidate_line(
     target: &BopTarget,
     method: &str,

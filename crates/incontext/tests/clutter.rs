@@ -232,6 +232,25 @@ fn write_clutter_bop(root: &Path, images: u64) {
     w.finish().unwrap();
 }
 
+/// `incontext eval --dataset root --gt-mask --out out --json --seed 3`, which must exit 0.
+fn eval_with_true_masks(root: &Path, out: &Path) -> std::process::Output {
+    check(
+        &[
+            "eval",
+            "--dataset",
+            s(root),
+            "--gt-mask",
+            "--out",
+            s(out),
+            "--json",
+            "--seed",
+            "3",
+        ],
+        0,
+        &[],
+    )
+}
+
 fn read_json(path: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
@@ -251,21 +270,7 @@ fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
     let root = dir.path().join("clutter-bop");
     write_clutter_bop(&root, 2);
     let out = dir.path().join("eval");
-    let o = check(
-        &[
-            "eval",
-            "--dataset",
-            s(&root),
-            "--gt-mask",
-            "--out",
-            s(&out),
-            "--json",
-            "--seed",
-            "3",
-        ],
-        0,
-        &[],
-    );
+    let o = eval_with_true_masks(&root, &out);
     let report = json_stdout(&o);
     assert_eq!(report["mode"], "dataset");
     // Every true instance of every target has a line (two per image here).
@@ -348,21 +353,7 @@ fn eval_dataset_scores_the_most_visible_copies_and_each_copy_by_its_own_mask() {
         ic_render::io::write_mask_png(mask_file(folder, copies[0]), &tiny).unwrap();
     }
     let out = dir.path().join("eval");
-    check(
-        &[
-            "eval",
-            "--dataset",
-            s(&root),
-            "--gt-mask",
-            "--out",
-            s(&out),
-            "--json",
-            "--seed",
-            "3",
-        ],
-        0,
-        &[],
-    );
+    eval_with_true_masks(&root, &out);
     let lines = jsonl(&out.join("per_image.jsonl"));
     assert_eq!(
         lines.len(),

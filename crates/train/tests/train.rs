@@ -400,7 +400,6 @@ fn seg_args(out: &Path, iterations: u64, resume: bool) -> ic_train::seg::TrainAr
     }
 }
 
-/// [`seg_args`] of a tiny two-output network on clutter scenes of four procedural objects.
 /// `eval-seg --scenes clutter` on `count` scenes of four procedural objects (seed 5) with the
 /// checkpoint `model`, the report at `out`; every option at its default.
 fn clutter_eval_args(model: PathBuf, count: u64, out: PathBuf) -> ic_train::seg::EvalArgs {
@@ -428,6 +427,7 @@ fn clutter_eval_args(model: PathBuf, count: u64, out: PathBuf) -> ic_train::seg:
     }
 }
 
+/// [`seg_args`] of a tiny two-output network on clutter scenes of four procedural objects.
 fn clutter_args(out: &Path, iterations: u64) -> ic_train::seg::TrainArgs {
     ic_train::seg::TrainArgs {
         preset: "tiny-clutter".into(),
