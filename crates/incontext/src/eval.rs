@@ -133,6 +133,10 @@ pub struct EvalArgs {
     /// Hypotheses the second network pass takes (see `register`); default: the pipeline's.
     #[arg(long)]
     pub pass_top: Option<usize>,
+    /// Instances of the model's size registered until one is `ok` (see `register`); default:
+    /// the pipeline's.
+    #[arg(long)]
+    pub instance_tries: Option<usize>,
 }
 
 impl EvalArgs {
@@ -154,6 +158,9 @@ impl EvalArgs {
                 .network_passes
                 .map_or(PipelineOptions::default().network_passes, |p| p as usize),
             pass_top: self.pass_top.unwrap_or(PipelineOptions::default().pass_top),
+            instance_tries: self
+                .instance_tries
+                .unwrap_or(PipelineOptions::default().instance_tries),
             ..PipelineOptions::default()
         }
     }

@@ -512,8 +512,10 @@ pub struct PipelineOptions {
     /// `verify_top`.
     pub pass_top: usize,
     /// With the segmentation network: how many of its instances (ranked by how well their
-    /// size fits the model, [`InstanceCandidate`]) are registered before giving up; the first
-    /// whose verdict is `ok` ends the search, otherwise the best verified one wins.
+    /// size fits the model, [`InstanceCandidate`]) are registered before giving up, and as
+    /// many pieces of heaps after them; the first whose verdict is `ok` ends the search,
+    /// otherwise the best verified one wins. 0 = every instance that fits. Default 8
+    /// (`docs/decisions.md`, "How many instances `register` tries").
     pub instance_tries: usize,
     /// `register --all` ([`Pipeline::register_depth_all`]) also returns `uncertain` instances
     /// whose confidence reaches this (`None`: only `ok` ones). The confidence of a
@@ -544,7 +546,7 @@ impl Default for PipelineOptions {
             sweep_keep: 0,
             network_passes: 3,
             pass_top: 0,
-            instance_tries: 3,
+            instance_tries: 8,
             all_min_confidence: None,
         }
     }
@@ -718,6 +720,35 @@ impl InstanceCandidate {
             if close { self.pixels as f64 } else { -off },
             self.score,
         )
+    }
+
+    /// The candidates to register, in order, from `ranked` (sorted by [`Self::rank`]): the
+    /// network's instances (and joined parts) that fit; when none does, the largest one that
+    /// is too large (its crop may still hold the object); then the pieces cut from heaps.
+    /// At most `per_group` of the first two kinds and `per_group` pieces (0 = all).
+    fn to_try(ranked: &[InstanceCandidate], per_group: usize) -> Vec<&InstanceCandidate> {
+        let per_group = if per_group == 0 {
+            usize::MAX
+        } else {
+            per_group
+        };
+        let own: Vec<&InstanceCandidate> =
+            ranked.iter().filter(|c| c.plausible && !c.cut).collect();
+        let fallback: Vec<&InstanceCandidate> = if own.is_empty() {
+            ranked
+                .iter()
+                .filter(|c| c.size_ratio > MAX_SIZE_RATIO && !c.cut)
+                .take(1)
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let pieces = ranked.iter().filter(|c| c.plausible && c.cut);
+        own.into_iter()
+            .chain(fallback)
+            .take(per_group)
+            .chain(pieces.take(per_group))
+            .collect()
     }
 
     /// Sorts `candidates` best first: plausible ones first, the network's instances (and
@@ -1072,6 +1103,13 @@ impl PipelineBuilder {
     /// Hypotheses the second pass takes ([`PipelineOptions::pass_top`]; 0 = all verified).
     pub fn pass_top(mut self, pass_top: usize) -> Self {
         self.options.pass_top = pass_top;
+        self
+    }
+
+    /// Instances tried before giving up ([`PipelineOptions::instance_tries`]; 0 = every one
+    /// that fits).
+    pub fn instance_tries(mut self, instance_tries: usize) -> Self {
+        self.options.instance_tries = instance_tries;
         self
     }
 
@@ -1603,37 +1641,11 @@ impl Pipeline {
             .iter()
             .filter(|c| c.parts == 1 && !c.cut)
             .count();
-        // The network's instances (and joined parts) that fit; when none does, the largest
-        // one that is too large (its crop may still hold the object); then the pieces cut
-        // from heaps, tried only when those gave no `ok` pose.
-        let own: Vec<&InstanceCandidate> = all_candidates
-            .iter()
-            .filter(|c| c.plausible && !c.cut)
-            .collect();
-        let fallback: Vec<&InstanceCandidate> = if own.is_empty() {
-            all_candidates
-                .iter()
-                .filter(|c| c.size_ratio > MAX_SIZE_RATIO && !c.cut)
-                .take(1)
-                .collect()
-        } else {
-            Vec::new()
-        };
-        let pieces: Vec<&InstanceCandidate> = all_candidates
-            .iter()
-            .filter(|c| c.plausible && c.cut)
-            .collect();
         let per_group = match search {
-            InstanceSearch::FirstOk => self.options.instance_tries.max(1),
-            _ => usize::MAX,
+            InstanceSearch::FirstOk => self.options.instance_tries,
+            _ => 0,
         };
-        let candidates: Vec<&InstanceCandidate> = own
-            .iter()
-            .chain(&fallback)
-            .take(per_group)
-            .chain(pieces.iter().take(per_group))
-            .copied()
-            .collect();
+        let candidates = InstanceCandidate::to_try(&all_candidates, per_group);
         if candidates.is_empty() && first_error.is_none() {
             let largest = all_candidates
                 .iter()
@@ -2541,6 +2553,50 @@ mod tests {
         InstanceCandidate::rank(&mut v);
         let order: Vec<usize> = v.iter().map(|c| c.pixels).collect();
         assert_eq!(order, [1600, 900, 12000, 2500, 5000, 9000, 20000]);
+    }
+
+    #[test]
+    fn instance_tries_bound_the_instances_and_the_pieces_tried_and_zero_tries_every_one() {
+        let c = |size_ratio: f64, pixels: usize, cut: bool| InstanceCandidate {
+            score: 0.9,
+            pixels,
+            extent: size_ratio,
+            size_ratio,
+            plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
+            truncated: false,
+            cut,
+            parts: 1,
+            mask: Mask::filled(1, 1, false),
+        };
+        let mut v = vec![
+            c(0.8, 100, false),
+            c(0.7, 200, false),
+            c(0.9, 300, false),
+            c(0.75, 400, false),
+            c(0.8, 50, true), // pieces of a heap: after every instance of the network's
+            c(0.8, 60, true),
+            c(0.8, 70, true),
+            c(2.0, 5000, false), // too large, never tried while others fit
+            c(0.1, 10, false),   // too small, never tried
+        ];
+        InstanceCandidate::rank(&mut v);
+        let tried = |n: usize| -> Vec<usize> {
+            InstanceCandidate::to_try(&v, n)
+                .iter()
+                .map(|c| c.pixels)
+                .collect()
+        };
+        assert_eq!(tried(2), [400, 300, 70, 60]);
+        assert_eq!(tried(3), [400, 300, 200, 70, 60, 50]);
+        assert_eq!(tried(0), [400, 300, 200, 100, 70, 60, 50]);
+        // Nothing fits but one too large: that one alone (its crop may hold the object).
+        let mut big = vec![c(3.0, 9000, false), c(2.0, 5000, false), c(0.1, 10, false)];
+        InstanceCandidate::rank(&mut big);
+        let tried: Vec<usize> = InstanceCandidate::to_try(&big, 0)
+            .iter()
+            .map(|c| c.pixels)
+            .collect();
+        assert_eq!(tried, [5000]);
     }
 
     #[test]

@@ -152,6 +152,11 @@ pub struct NetworkArgs {
     /// --verify-top.
     #[arg(long, default_value_t = PipelineOptions::default().pass_top)]
     pub pass_top: usize,
+    /// With the segmentation network: instances of the model's size registered, best-fitting
+    /// first, until one is `ok` (then as many pieces cut from heaps); the best verified pose
+    /// wins. Fewer is faster when nothing is `ok`; 0 = every instance that fits.
+    #[arg(long, default_value_t = PipelineOptions::default().instance_tries)]
+    pub instance_tries: usize,
 }
 
 pub fn parse_rotations(s: &str) -> std::result::Result<usize, String> {
@@ -200,6 +205,7 @@ impl NetworkArgs {
             .sampled_hypotheses(self.sampled_hypotheses)
             .network_passes(self.network_passes as usize)
             .pass_top(self.pass_top)
+            .instance_tries(self.instance_tries)
             .second_pose(!self.no_second_pose);
         if let Some(path) = &self.second_pose_model {
             b = b.second_pose_model(path);

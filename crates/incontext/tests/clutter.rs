@@ -422,10 +422,10 @@ fn eval_frames_judges_each_pose_against_the_depth_without_ground_truth() {
     check(&["eval", "--frames", s(empty.path())], 2, &["no depth PNG"]);
 }
 
-/// The scene of `incontext demo --seed 10` (a procedural object of several parts, alone in
+/// The scene of `incontext demo --seed 50` (a procedural object of several parts, alone in
 /// the room, mm) and its true pose.
 fn lone_composite_scene() -> (incontext::Object, ic_geometry::DepthImage, Intrinsics, Pose) {
-    let scene = incontext::demo::DemoScene::new(10).unwrap();
+    let scene = incontext::demo::DemoScene::new(50).unwrap();
     let object = incontext::Object::from_mesh(scene.mesh_mm(), 3).unwrap();
     (
         object,
