@@ -133,8 +133,8 @@ pub struct EvalArgs {
     /// Hypotheses the second network pass takes (see `register`); default: the pipeline's.
     #[arg(long)]
     pub pass_top: Option<usize>,
-    /// Instances of the model's size registered until one is `ok` (see `register`); default:
-    /// the pipeline's.
+    /// Instances of the model's size registered until one is `ok` (see `register`; 0 = every
+    /// one that fits); default: the pipeline's.
     #[arg(long)]
     pub instance_tries: Option<usize>,
 }

@@ -724,7 +724,8 @@ impl InstanceCandidate {
 
     /// The candidates to register, in order, from `ranked` (sorted by [`Self::rank`]): the
     /// network's instances (and joined parts) that fit; when none does, the largest one that
-    /// is too large (its crop may still hold the object); then the pieces cut from heaps.
+    /// is too large (its crop may still hold the object); then the pieces cut from heaps
+    /// (reached only when the others gave no `ok` pose: the search stops at the first).
     /// At most `per_group` of the first two kinds and `per_group` pieces (0 = all).
     fn to_try(ranked: &[InstanceCandidate], per_group: usize) -> Vec<&InstanceCandidate> {
         let per_group = if per_group == 0 {
