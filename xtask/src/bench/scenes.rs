@@ -60,6 +60,9 @@ pub struct ClutterReport {
     /// The `incontext --json eval --dataset` report (its `datasets.clutter.results`), or why
     /// it is missing.
     pub pipeline: Result<Value, String>,
+    /// Whether `pipeline` was read back from an earlier run's `runs/clutter.json` (`--resume`)
+    /// instead of run again.
+    pub pipeline_reused: bool,
     pub seconds: f64,
 }
 
@@ -206,10 +209,12 @@ pub fn clutter(
     };
     let runs = work.join("runs/clutter");
     let saved = work.join("runs/clutter.json");
+    let mut pipeline_reused = false;
     let pipeline = match (&cli.unusable, resume.then(|| read_json(&saved)).flatten()) {
         (Some(why), _) => Err(why.clone()),
         (None, Some(v)) => {
             tracing::info!(file = %saved.display(), "reusing the clutter pipeline's results");
+            pipeline_reused = true;
             Ok(v)
         }
         (None, None) => {
@@ -235,6 +240,7 @@ pub fn clutter(
         segmentation,
         segmentation_shadowed,
         pipeline,
+        pipeline_reused,
         seconds: t0.elapsed().as_secs_f64(),
     })
 }

@@ -265,12 +265,19 @@ fn clutter_section(report: &Report) -> String {
                 .and_then(|d| d.values().next())
                 .and_then(|d| d["results"].as_array().cloned())
                 .unwrap_or_default();
-            s.push_str(
+            let _ = write!(
+                s,
                 "The whole pipeline (`incontext eval --dataset`, `register`'s default: the \
                  clutter segmentation with the one-object network's second opinion, ranking by \
                  size, hypothesise and verify); errors to the nearest true instance of the \
-                 target:\n\n| method | targets | failed | ADD-S < 0.1·d | acc@5° | acc@10° | \
+                 target{}:\n\n| method | targets | failed | ADD-S < 0.1·d | acc@5° | acc@10° | \
                  acc@15° | rot. median (°) | median s |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+                if c.pipeline_reused {
+                    " (reused, `--resume`: read back from `runs/clutter.json`, written \
+                     earlier on the same scenes, not run again)"
+                } else {
+                    ""
+                }
             );
             for r in &results {
                 let sm = &r["summary"];
@@ -885,6 +892,17 @@ fn markdown(report: &Report, plots: &[(Set, Vec<PathBuf>)]) -> String {
     );
     let _ = writeln!(
         s,
+        "- Build: {}; the speed table, the accuracy/speed curve and the training steps are timed \
+         in this process, the other times in the `incontext` binary.",
+        if report.release_build {
+            "release"
+        } else {
+            "dev (debug assertions and overflow checks on: our code is timed slower than in a \
+             release build, which the full run uses)"
+        }
+    );
+    let _ = writeln!(
+        s,
         "- Load average (1/5/15 min) at the start: {}; at the end: {}. Other jobs on the \
          machine (e.g. training runs) slow every timing alike; compare ratios, not absolute times.",
         m.load_average_start.as_deref().unwrap_or("?"),
@@ -1322,6 +1340,7 @@ mod tests {
                 "predictions_per_image": 6.0,
             })),
             pipeline: Err("`incontext eval --cases` is not available".into()),
+            pipeline_reused: false,
             seconds: 1.0,
         });
         report.frames = vec![FramesReport {
@@ -1370,6 +1389,47 @@ mod tests {
             md.contains("| cups | ours-softmax-verify | 6 | 5 | 7 | 6 | 4 | 1.50 |"),
             "{md}"
         );
+    }
+
+    #[test]
+    fn a_reused_clutter_pipeline_and_the_timing_build_are_said_in_the_report() {
+        let tmp = tempfile::tempdir().unwrap();
+        let mut report = Report::start(&crate::workspace_root(), &Config::for_tests(tmp.path()));
+        let pipeline = serde_json::json!({"datasets": {"clutter": {"results": [{
+            "method": "ours-softmax-verify", "seconds_median": 4.0,
+            "summary": {"count": 10, "failures": 1, "add_s_accuracy": 0.7,
+                        "rotation_accuracy": [[5, 0.2], [10, 0.3], [15, 0.4]],
+                        "rotation_median_deg": 90.0},
+        }]}}});
+        let clutter = |reused| crate::bench::scenes::ClutterReport {
+            scenes: 2,
+            dir: "clutter-data".into(),
+            segmentation: Err("absent".into()),
+            segmentation_shadowed: Err("absent".into()),
+            pipeline: Ok(pipeline.clone()),
+            pipeline_reused: reused,
+            seconds: 1.0,
+        };
+        report.clutter = Some(clutter(false));
+        let md = markdown(&report, &[]);
+        assert!(
+            md.contains(
+                "| ours-softmax-verify | 10 | 1 | 0.700 | 0.200 | 0.300 | 0.400 | 90.0 | 4.00 |"
+            ),
+            "{md}"
+        );
+        assert!(!md.contains("(reused, `--resume`"), "{md}");
+        report.clutter = Some(clutter(true));
+        let md = markdown(&report, &[]);
+        assert!(
+            md.contains("target (reused, `--resume`: read back from `runs/clutter.json`"),
+            "{md}"
+        );
+        // Tests run in a dev build.
+        report.release_build = false;
+        assert!(markdown(&report, &[]).contains("- Build: dev (debug assertions"));
+        report.release_build = true;
+        assert!(markdown(&report, &[]).contains("- Build: release;"));
     }
 
     #[test]

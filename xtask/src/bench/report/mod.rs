@@ -149,6 +149,9 @@ pub struct Report {
     pub date: String,
     pub commit: Option<String>,
     pub machine: Machine,
+    /// Whether this process (which times the speed stage) is a release build: a dev build
+    /// keeps debug assertions and overflow checks on and times our code slower.
+    pub release_build: bool,
     pub models: Vec<Value>,
     pub cli: Option<Cli>,
     pub open3d_version: Option<String>,
@@ -199,6 +202,7 @@ impl Report {
             date: utc(now),
             commit: git_commit(root),
             machine: Machine::probe(),
+            release_build: !cfg!(debug_assertions),
             models,
             cli: None,
             open3d_version: None,
