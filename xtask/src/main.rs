@@ -51,6 +51,7 @@ mod clutter_calibration;
 mod curves;
 mod data;
 mod pose;
+mod release;
 mod seg;
 mod symmetries;
 mod verify_report;
@@ -142,30 +143,30 @@ fn main() -> std::process::ExitCode {
             init_tracing();
             clutter::preview(args)
         }
-        Cmd::GenData(args) => {
+        Cmd::GenData(args) => release::rerun_in_release().and_then(|()| {
             init_tracing();
             data::gen_data(args)
-        }
-        Cmd::ExportCases(args) => {
+        }),
+        Cmd::ExportCases(args) => release::rerun_in_release().and_then(|()| {
             init_tracing();
             data::export_cases(args)
-        }
-        Cmd::TrainPose(args) => {
+        }),
+        Cmd::TrainPose(args) => release::rerun_in_release().and_then(|()| {
             init_tracing();
             pose::train(args)
-        }
-        Cmd::EvalPose(args) => {
+        }),
+        Cmd::EvalPose(args) => release::rerun_in_release().and_then(|()| {
             init_tracing();
             pose::eval(args)
-        }
-        Cmd::TrainSeg(args) => {
+        }),
+        Cmd::TrainSeg(args) => release::rerun_in_release().and_then(|()| {
             init_tracing();
             seg::train(args)
-        }
-        Cmd::EvalSeg(args) => {
+        }),
+        Cmd::EvalSeg(args) => release::rerun_in_release().and_then(|()| {
             init_tracing();
             seg::eval(args)
-        }
+        }),
         Cmd::SegPost(args) => {
             init_tracing();
             seg::set_post(args)

@@ -34,7 +34,7 @@ pub mod speed;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use clap::Args;
 
 use cases::{CaseSet, Objects, Set};
@@ -195,44 +195,22 @@ fn real_objects(root: &Path, given: Option<&Path>) -> Result<Option<Objects>> {
     Ok(None)
 }
 
-/// Whether this run must go on in a release build of xtask: the speed stage (registration
-/// times, the accuracy/speed curve, training steps) times our code inside this process, and a
-/// dev build — what `cargo xtask` runs — keeps debug assertions and overflow checks on, which
-/// made one 384×288 registration take ≈ 39 ms against ≈ 23 ms in a release build
-/// (`docs/decisions.md`, "The bench times our code in a release build"). The full run with
-/// its speed stage therefore runs itself in release; `--quick` (CI's smoke run, whose times
-/// nobody compares) and `--no-speed` stay in the build they were started in.
-fn times_in_release(dev_build: bool, quick: bool, no_speed: bool) -> bool {
-    dev_build && !quick && !no_speed
-}
-
-/// Runs this same command line again from the release build (`cargo run --release -p xtask
-/// -- …`, in the current folder, so relative paths mean what they meant) and exits with its
-/// status.
-fn rerun_in_release() -> Result<()> {
-    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-    eprintln!(
-        "== the full bench times our code in its own process: running it from the release build \
-         (cargo run --release -p xtask -- …)"
-    );
-    let status = std::process::Command::new(cargo)
-        .args(["run", "--release", "--quiet", "--package", "xtask", "--"])
-        .args(std::env::args_os().skip(1))
-        .status()
-        .context("starting `cargo run --release -p xtask`")?;
-    match status.code() {
-        Some(0) => Ok(()),
-        Some(code) => std::process::exit(code),
-        None => bail!("the release build of the bench was stopped by a signal ({status})"),
-    }
+/// Whether this run goes on in a release build of xtask (`crate::release`): the speed stage
+/// (registration times, the accuracy/speed curve, training steps) times our code inside this
+/// process, and a dev build — what `cargo xtask` runs — times it slower (one 384×288
+/// registration ≈ 39 ms against ≈ 23 ms). `--quick` (CI's smoke run, whose times nobody
+/// compares) and `--no-speed` stay in the build they were started in; the report's header
+/// names the build that timed.
+fn times_in_release(quick: bool, no_speed: bool) -> bool {
+    !quick && !no_speed
 }
 
 pub fn run(args: BenchArgs) -> Result<()> {
     if args.criterion || !args.names.is_empty() {
         return crate::criterion_bench(&args.names);
     }
-    if times_in_release(cfg!(debug_assertions), args.quick, args.no_speed) {
-        return rerun_in_release();
+    if times_in_release(args.quick, args.no_speed) {
+        crate::release::rerun_in_release()?;
     }
     // Before any thread exists: candle and rayon read it once.
     crate::pose::set_threads(Some(args.threads));
@@ -686,15 +664,11 @@ mod tests {
     use crate::bench::scenes::ClutterReport;
 
     #[test]
-    fn only_a_full_run_with_its_speed_stage_started_from_a_dev_build_reruns_in_release() {
-        // (dev build, --quick, --no-speed) → rerun in release?
-        assert!(times_in_release(true, false, false));
-        assert!(!times_in_release(false, false, false), "already release");
-        assert!(!times_in_release(true, true, false), "CI's quick run stays");
-        assert!(
-            !times_in_release(true, false, true),
-            "nothing timed in process"
-        );
+    fn only_a_full_run_with_its_speed_stage_goes_on_in_release() {
+        // (--quick, --no-speed) → rerun in release?
+        assert!(times_in_release(false, false));
+        assert!(!times_in_release(true, false), "CI's quick run stays");
+        assert!(!times_in_release(false, true), "nothing timed in process");
     }
 
     fn clutter(
