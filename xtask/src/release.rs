@@ -4,9 +4,10 @@
 //! opt-level 1–3 but with debug assertions and overflow checks on. That build suits the tests
 //! and the chores, and it is the wrong one for what runs for hours or is timed. Measured one
 //! after the other on the 2-core machine, same arguments and seed (`docs/decisions.md`, "The
-//! long commands run from the release build"): a clutter segmentation training iteration
-//! (batch 4) ≈ 2.0 s in the dev build against 1.3 s in release; a `cpu` pose training step
-//! 29 900 against 36 200 pairs/h; one 384×288 registration 38.7 against 23.3 ms.
+//! long commands run from the release build"): a `cpu` pose training step 29 900 pairs/h in
+//! the dev build against 36 200 in release; one 384×288 registration 38.7 against 23.3 ms; the
+//! first 40 iterations of a clutter segmentation run 113 against 90 s (in steady state its
+//! iterations take about the same in both).
 //!
 //! Those commands (training, evaluation, data generation, the full bench) call
 //! [`rerun_in_release`] first: from a dev build it replaces the process with `cargo run
