@@ -122,6 +122,28 @@ enum Cmd {
     AverageWeights(weights::AverageWeightsArgs),
 }
 
+impl Cmd {
+    /// Whether this command runs long or is timed in its own process, and so runs from the
+    /// release build (`release`): training, evaluation, data generation, and the full bench,
+    /// whose speed stage (registration times, the accuracy/speed curve, training steps) times
+    /// our code in this process — one 384×288 registration ≈ 39 ms in the dev build against
+    /// ≈ 23 ms. `bench --quick` (CI's smoke run, whose times nobody compares), `--no-speed` and
+    /// the criterion benchmarks (cargo builds those in their own profile) stay; the bench
+    /// report's header names the build that timed.
+    fn runs_long(&self) -> bool {
+        match self {
+            Cmd::Bench(a) => !a.criterion && a.names.is_empty() && !a.quick && !a.no_speed,
+            Cmd::GenData(_)
+            | Cmd::ExportCases(_)
+            | Cmd::TrainPose(_)
+            | Cmd::EvalPose(_)
+            | Cmd::TrainSeg(_)
+            | Cmd::EvalSeg(_) => true,
+            _ => false,
+        }
+    }
+}
+
 /// Which crate owns each benchmark file under `benches/`.
 const BENCHES: &[(&str, &str)] = &[
     ("geometry", "ic_geometry"),
@@ -136,37 +158,43 @@ const BENCHES: &[(&str, &str)] = &[
 fn main() -> std::process::ExitCode {
     // SAFETY: first thing in main, before any other thread exists.
     unsafe { ic_pose::tune_candle_cpu_pool() };
-    let result = match Cli::parse().command {
+    let command = Cli::parse().command;
+    let start = if command.runs_long() {
+        release::rerun_in_release()
+    } else {
+        Ok(())
+    };
+    let result = start.and_then(|()| match command {
         Cmd::Bench(args) => bench::run(args),
         Cmd::Test => test(),
         Cmd::ClutterPreview(args) => {
             init_tracing();
             clutter::preview(args)
         }
-        Cmd::GenData(args) => release::rerun_in_release().and_then(|()| {
+        Cmd::GenData(args) => {
             init_tracing();
             data::gen_data(args)
-        }),
-        Cmd::ExportCases(args) => release::rerun_in_release().and_then(|()| {
+        }
+        Cmd::ExportCases(args) => {
             init_tracing();
             data::export_cases(args)
-        }),
-        Cmd::TrainPose(args) => release::rerun_in_release().and_then(|()| {
+        }
+        Cmd::TrainPose(args) => {
             init_tracing();
             pose::train(args)
-        }),
-        Cmd::EvalPose(args) => release::rerun_in_release().and_then(|()| {
+        }
+        Cmd::EvalPose(args) => {
             init_tracing();
             pose::eval(args)
-        }),
-        Cmd::TrainSeg(args) => release::rerun_in_release().and_then(|()| {
+        }
+        Cmd::TrainSeg(args) => {
             init_tracing();
             seg::train(args)
-        }),
-        Cmd::EvalSeg(args) => release::rerun_in_release().and_then(|()| {
+        }
+        Cmd::EvalSeg(args) => {
             init_tracing();
             seg::eval(args)
-        }),
+        }
         Cmd::SegPost(args) => {
             init_tracing();
             seg::set_post(args)
@@ -180,7 +208,7 @@ fn main() -> std::process::ExitCode {
             init_tracing();
             symmetries::run(args)
         }
-    };
+    });
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
@@ -443,5 +471,38 @@ fn human(ns: f64) -> String {
         n if n >= 1e6 => format!("{:.3} ms", n / 1e6),
         n if n >= 1e3 => format!("{:.3} µs", n / 1e3),
         n => format!("{n:.0} ns"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn runs_long(args: &[&str]) -> bool {
+        Cli::try_parse_from(std::iter::once("xtask").chain(args.iter().copied()))
+            .unwrap()
+            .command
+            .runs_long()
+    }
+
+    #[test]
+    fn training_evaluation_and_the_full_bench_with_its_speed_stage_run_long() {
+        assert!(runs_long(&["bench", "--peers"]));
+        assert!(!runs_long(&["bench", "--quick"]), "CI's quick run stays");
+        assert!(
+            !runs_long(&["bench", "--no-speed"]),
+            "nothing timed in process"
+        );
+        assert!(
+            !runs_long(&["bench", "--criterion"]),
+            "cargo bench's own profile"
+        );
+        assert!(
+            !runs_long(&["bench", "pose"]),
+            "naming a criterion benchmark"
+        );
+        assert!(runs_long(&["train-seg", "--objects", "o", "--out", "x"]));
+        assert!(runs_long(&["gen-data", "--out", "x"]));
+        assert!(!runs_long(&["test"]));
     }
 }

@@ -9,8 +9,8 @@
 //! first 40 iterations of a clutter segmentation run 113 against 90 s (in steady state its
 //! iterations take about the same in both).
 //!
-//! Those commands (training, evaluation, data generation, the full bench) call
-//! [`rerun_in_release`] first: from a dev build it replaces the process with `cargo run
+//! `main` calls [`rerun_in_release`] first for those commands (`Cmd::runs_long`: training,
+//! evaluation, data generation, the full bench): from a dev build it replaces the process with `cargo run
 //! --release -p xtask -- <the same arguments>` (same folder, so relative paths keep their
 //! meaning; on Unix the same process, so Ctrl-C and `kill -INT` reach the training loop, which
 //! saves a checkpoint first). `INCONTEXT_XTASK_DEV=1` keeps the dev build (e.g. to debug).

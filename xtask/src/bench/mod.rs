@@ -195,22 +195,9 @@ fn real_objects(root: &Path, given: Option<&Path>) -> Result<Option<Objects>> {
     Ok(None)
 }
 
-/// Whether this run goes on in a release build of xtask (`crate::release`): the speed stage
-/// (registration times, the accuracy/speed curve, training steps) times our code inside this
-/// process, and a dev build — what `cargo xtask` runs — times it slower (one 384×288
-/// registration ≈ 39 ms against ≈ 23 ms). `--quick` (CI's smoke run, whose times nobody
-/// compares) and `--no-speed` stay in the build they were started in; the report's header
-/// names the build that timed.
-fn times_in_release(quick: bool, no_speed: bool) -> bool {
-    !quick && !no_speed
-}
-
 pub fn run(args: BenchArgs) -> Result<()> {
     if args.criterion || !args.names.is_empty() {
         return crate::criterion_bench(&args.names);
-    }
-    if times_in_release(args.quick, args.no_speed) {
-        crate::release::rerun_in_release()?;
     }
     // Before any thread exists: candle and rayon read it once.
     crate::pose::set_threads(Some(args.threads));
@@ -662,14 +649,6 @@ mod tests {
     use super::*;
     use crate::bench::report::{Config, Report};
     use crate::bench::scenes::ClutterReport;
-
-    #[test]
-    fn only_a_full_run_with_its_speed_stage_goes_on_in_release() {
-        // (--quick, --no-speed) → rerun in release?
-        assert!(times_in_release(false, false));
-        assert!(!times_in_release(true, false), "CI's quick run stays");
-        assert!(!times_in_release(false, true), "nothing timed in process");
-    }
 
     fn clutter(
         segmentation: Result<serde_json::Value, String>,

@@ -209,12 +209,12 @@ pub fn clutter(
     };
     let runs = work.join("runs/clutter");
     let saved = work.join("runs/clutter.json");
-    let mut pipeline_reused = false;
-    let pipeline = match (&cli.unusable, resume.then(|| read_json(&saved)).flatten()) {
+    let earlier = resume.then(|| read_json(&saved)).flatten();
+    let pipeline_reused = cli.unusable.is_none() && earlier.is_some();
+    let pipeline = match (&cli.unusable, earlier) {
         (Some(why), _) => Err(why.clone()),
         (None, Some(v)) => {
             tracing::info!(file = %saved.display(), "reusing the clutter pipeline's results");
-            pipeline_reused = true;
             Ok(v)
         }
         (None, None) => {
