@@ -572,7 +572,6 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
                                     "inlier_count": r.inlier_count,
                                     "icp": r.icp,
                                     "verification": r.verification,
-                                    "whole_view": r.whole_view,
                                     "rival_score": r.rival_score,
                                     "evidence": r.evidence,
                                     "verified": r.verified.iter().map(|h| {
@@ -862,7 +861,6 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                             rec["confidence"] = json!(r.confidence);
                             rec["verdict"] = json!(r.verdict);
                             rec["verification"] = json!(r.verification);
-                            rec["whole_view"] = json!(r.whole_view);
                             rec["instance"] = json!(r.instance);
                         }
                         None => {
@@ -1045,7 +1043,7 @@ fn candidate_line(
         "method": method, "true_instances": samples.len(), "errors": e,
         "right": e.add_s.is_some_and(|a| a < 0.1), "instance_iou": instance_iou,
         "confidence": r.confidence, "verdict": r.verdict, "verification": r.verification,
-        "whole_view": r.whole_view, "rival_score": r.rival_score, "evidence": r.evidence, "instance": r.instance,
+        "rival_score": r.rival_score, "evidence": r.evidence, "instance": r.instance,
         "segmentation": r.segmentation, "object_voxels": r.object_voxels,
     })
     .to_string())
@@ -1130,7 +1128,7 @@ fn run_frames(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Res
             && a.in_front < FRAME_IN_FRONT;
         Ok(json!({
             "pose": r.pose, "confidence": r.confidence, "verdict": r.verdict,
-            "verification": r.verification, "whole_view": r.whole_view, "instance": r.instance,
+            "verification": r.verification, "instance": r.instance,
             "agreement": a, "agrees": pass,
         }))
     };

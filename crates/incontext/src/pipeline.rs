@@ -236,25 +236,6 @@ pub fn evidence(score: f64, rival: f64) -> f64 {
     score.min(4.0 * (score - rival)).clamp(0.0, 1.0)
 }
 
-/// What the evidence of a verified pose keeps when its rendering, scored on a crop that holds
-/// all of it (`whole`), lies in front of the observed surface more often than on the mask's
-/// crop (`crop`): the ratio of the scores' free-space terms, `(1 − 3·v_whole) / (1 − 3·v_crop)`
-/// (see [`crate::verify::Score`]), in [0, 1]. The mask's crop (its box grown by 30 %) cannot
-/// see a model that runs far past a small mask — a pose fitted to a fragment, the model
-/// hanging in the air beside it — so its score stays high; over the whole projection the
-/// free-space term is what it would have been had the crop been large enough. No new
-/// threshold: the calibrations read the evidence as before (`docs/decisions.md`, "The whole
-/// view of the final pose").
-pub fn whole_view_factor(crop: &crate::verify::Score, whole: &crate::verify::Score) -> f64 {
-    let free = |v: f64| (1.0 - 3.0 * v).max(0.0);
-    let (c, w) = (free(crop.violation), free(whole.violation));
-    if c <= 0.0 {
-        // The crop's score is already 0, and so is the evidence.
-        return 1.0;
-    }
-    (w / c).clamp(0.0, 1.0)
-}
-
 /// Object voxels each verified hypothesis is refined on by ICP (the winner is refined again
 /// on up to `icp_max_points`).
 pub const VERIFY_ICP_POINTS: usize = 1024;
@@ -868,14 +849,8 @@ pub struct Registration {
     /// The best score of a verified pose that is not equivalent to the chosen one (ADD-S
     /// between them ≥ 0.1·diameter), 0 when there is none.
     pub rival_score: Option<f64>,
-    /// What the confidence is calibrated from: [`evidence`] of the score and the rival, times
-    /// the [`whole_view_factor`] when the model's rendering runs out of the scoring crop.
+    /// What the confidence is calibrated from: [`evidence`] of the score and the rival.
     pub evidence: Option<f64>,
-    /// The final pose scored again on a crop grown to hold the model's whole projection
-    /// ([`crate::verify::Observation::from_depth_holding`]), when the pixels of a mask were
-    /// registered and the model's projection runs out of the mask's crop; its free space
-    /// scales the evidence ([`whole_view_factor`]).
-    pub whole_view: Option<crate::verify::Score>,
     /// One-shot hypotheses made, and how many were refined and verified.
     pub hypotheses_made: usize,
     pub hypotheses_verified: usize,
@@ -1971,57 +1946,10 @@ impl Pipeline {
             seconds,
             clock,
         )?;
-        if observation.is_some() {
-            self.score_whole_view(object, depth_n, intrinsics, &mask, &mut r);
-        }
         r.object_points = points.len();
         r.segmentation = Some(summary);
         r.mask = Some(mask);
         Ok(r)
-    }
-
-    /// How verification draws `object`: its mesh, or its points splatted at half a voxel.
-    fn model_shape(&self, object: &Object) -> crate::verify::ModelShape {
-        use crate::verify::ModelShape;
-        match &object.mesh {
-            Some(mesh) => ModelShape::Mesh(mesh.clone()),
-            None => ModelShape::points(object.points.clone(), 0.5 * self.options.voxel_size),
-        }
-    }
-
-    /// The final pose of a verified registration on `mask` scored again on a crop that holds
-    /// the model's whole projection, when it runs out of the mask's crop; its free space
-    /// scales the evidence ([`whole_view_factor`]) and the confidence and verdict follow
-    /// (single-object calibration here; the clutter one is applied by the caller from the
-    /// same evidence).
-    fn score_whole_view(
-        &self,
-        object: &Object,
-        depth_n: &DepthImage,
-        intrinsics: &Intrinsics,
-        mask: &Mask,
-        r: &mut Registration,
-    ) {
-        let (Some(crop), Some(evidence)) = (r.verification, r.evidence) else {
-            return;
-        };
-        let t = Instant::now();
-        let held = crate::verify::projected_box(&object.points, &r.pose_normalised, intrinsics);
-        let Some(view) = held.and_then(|held| {
-            crate::verify::Observation::from_depth_holding(depth_n, intrinsics, mask, held)
-        }) else {
-            return;
-        };
-        let shape = self.model_shape(object);
-        let whole = view.score(&shape, &r.pose_normalised);
-        let evidence = evidence * whole_view_factor(&crop, &whole);
-        r.whole_view = Some(whole);
-        r.evidence = Some(evidence);
-        r.confidence = verified_calibration().apply(evidence);
-        r.verdict = Verdict::of_verified(crop.score, r.confidence, &self.options);
-        let spent = t.elapsed().as_secs_f64();
-        r.seconds.verification += spent;
-        r.seconds.total += spent;
     }
 
     /// Registers `object` onto observed object points (camera frame, normalised units), e.g.
@@ -2131,7 +2059,6 @@ impl Pipeline {
             verified: Vec::new(),
             rival_score: None,
             evidence: None,
-            whole_view: None,
             hypotheses_made: made,
             hypotheses_verified: verified,
             segmentation: None,
@@ -2163,7 +2090,7 @@ impl Pipeline {
         mut seconds: StageSeconds,
         clock: Instant,
     ) -> Result<Registration> {
-        use crate::verify::rotation_set;
+        use crate::verify::{ModelShape, rotation_set};
         let rotations = rotation_set(self.options.rotations).map_err(PipelineError::input)?;
         let (m, n) = match self.options.sweep_points {
             0 => self.point_counts(),
@@ -2270,7 +2197,10 @@ impl Pipeline {
             candidates.extend(mine);
         }
         let top = candidates.len();
-        let shape = self.model_shape(object);
+        let shape = match &object.mesh {
+            Some(mesh) => ModelShape::Mesh(mesh.clone()),
+            None => ModelShape::points(object.points.clone(), 0.5 * self.options.voxel_size),
+        };
         let mut rng = ChaCha8Rng::seed_from_u64(ic_data::mix_seed(seed, 0x5e1f));
         let target = self.icp_target(object, &mut seconds)?;
         let mut verified: Vec<(crate::verify::Score, Hypothesis)> = Vec::new();
@@ -2688,24 +2618,6 @@ mod tests {
         }
         assert_eq!(segmentation_evidence(1.5, 1.0), 1.0);
         assert!((segmentation_evidence(0.8, 0.5) - 0.4).abs() < 1e-12);
-    }
-
-    #[test]
-    fn the_whole_view_only_lowers_evidence_by_the_free_space_the_crop_did_not_see() {
-        let s = |violation: f64| crate::verify::Score {
-            violation,
-            ..Default::default()
-        };
-        // No more free space over the whole projection (or less): unchanged.
-        assert_eq!(whole_view_factor(&s(0.02), &s(0.02)), 1.0);
-        assert_eq!(whole_view_factor(&s(0.05), &s(0.01)), 1.0);
-        // The free-space term of the score, (1 − 3v), as it would have been on a larger crop.
-        assert!((whole_view_factor(&s(0.0), &s(0.1)) - 0.7).abs() < 1e-12);
-        assert!((whole_view_factor(&s(0.1), &s(0.2)) - 0.4 / 0.7).abs() < 1e-12);
-        // A third of the rendering in front of the observed surface leaves no evidence.
-        assert_eq!(whole_view_factor(&s(0.0), &s(0.34)), 0.0);
-        // The crop's score is already 0: nothing left to scale.
-        assert_eq!(whole_view_factor(&s(0.4), &s(0.9)), 1.0);
     }
 
     #[test]

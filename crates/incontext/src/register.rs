@@ -429,7 +429,6 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
             "assignment_confidence": registration.assignment_confidence,
             "icp": registration.icp,
             "verification": registration.verification,
-            "whole_view": registration.whole_view,
             "rival_score": registration.rival_score,
             "evidence": registration.evidence,
             "hypotheses_made": registration.hypotheses_made,

@@ -72,71 +72,6 @@ fn roughness(
     *d.select_nth_unstable_by(mid, f32::total_cmp).1
 }
 
-/// The longest side, in pixels, of a crop grown by [`Observation::from_depth_holding`] (a
-/// model projected far beyond its mask is scored at a coarser step beyond it).
-pub const WHOLE_VIEW_SIDE: u32 = 3 * SCORE_SIDE;
-
-/// The scoring crop of a mask: its bounding box (pixels with a return) grown by 30 % on each
-/// side and clamped to the image (inclusive), the step that brings its longest side to at most
-/// [`SCORE_SIDE`], and the mask's roughness. `None` when no mask pixel has a return.
-fn mask_crop(
-    depth: &DepthImage,
-    mask: &Mask,
-) -> Option<((usize, usize, usize, usize), usize, f32)> {
-    let (w, h) = (depth.width as usize, depth.height as usize);
-    let (mut u0, mut v0, mut u1, mut v1) = (usize::MAX, usize::MAX, 0usize, 0usize);
-    for v in 0..h {
-        for u in 0..w {
-            if mask.data[v * w + u] && depth.data[v * w + u] > 0.0 {
-                u0 = u0.min(u);
-                v0 = v0.min(v);
-                u1 = u1.max(u);
-                v1 = v1.max(v);
-            }
-        }
-    }
-    if u0 == usize::MAX {
-        return None;
-    }
-    let grow = |lo: usize, hi: usize, max: usize| {
-        let m = ((hi - lo + 1) as f64 * 0.3).ceil() as usize;
-        (lo.saturating_sub(m), (hi + m).min(max - 1))
-    };
-    let rough = roughness(depth, mask, (u0, v0, u1, v1));
-    let (u0, u1) = grow(u0, u1, w);
-    let (v0, v1) = grow(v0, v1, h);
-    let (cw, ch) = (u1 - u0 + 1, v1 - v0 + 1);
-    let step = cw.max(ch).div_ceil(SCORE_SIDE as usize).max(1);
-    Some(((u0, v0, u1, v1), step, rough))
-}
-
-/// The pixel box (columns `u0..=u1`, rows `v0..=v1`, unclamped) that `points` (model frame,
-/// normalised units) moved by `pose` (model → camera) project into through `k`, grown by one
-/// pixel; `None` when none lies in front of the camera.
-pub fn projected_box(points: &[Vec3], pose: &Pose, k: &Intrinsics) -> Option<(i64, i64, i64, i64)> {
-    let (mut u0, mut v0, mut u1, mut v1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
-    for p in points {
-        let c = pose.apply_f32(*p);
-        if !(c.z > 1e-3) {
-            continue;
-        }
-        let (u, v) = (
-            k.fx * (c.x / c.z) as f64 + k.cx,
-            k.fy * (c.y / c.z) as f64 + k.cy,
-        );
-        u0 = u0.min(u);
-        v0 = v0.min(v);
-        u1 = u1.max(u);
-        v1 = v1.max(v);
-    }
-    if u0 > u1 {
-        return None;
-    }
-    // Far outside the image is as good as its edge (and keeps the casts in range).
-    let c = |x: f64| x.clamp(-1e6, 1e6).round() as i64;
-    Some((c(u0) - 1, c(v0) - 1, c(u1) + 1, c(v1) + 1))
-}
-
 /// How the model is drawn into a crop: its mesh (normalised) or its points (splatted).
 #[derive(Clone)]
 pub enum ModelShape {
@@ -217,70 +152,30 @@ impl Observation {
     /// bounding box grown by 30 % on each side (clamped to the image), reduced so its longest
     /// side is at most [`SCORE_SIDE`]. `None` when the mask has no pixel with a return.
     pub fn from_depth(depth: &DepthImage, k: &Intrinsics, mask: &Mask) -> Option<Observation> {
-        let (crop, step, rough) = mask_crop(depth, mask)?;
-        Some(Observation::sample(depth, k, mask, crop, step, rough))
-    }
-
-    /// The crop of [`Observation::from_depth`] grown to hold the pixel box `held` as well
-    /// (columns `u0..=u1`, rows `v0..=v1` of the depth map, clamped to it; e.g. the model's
-    /// projection at a pose, [`projected_box`]), on the same pixel grid as long as it stays
-    /// within [`WHOLE_VIEW_SIDE`] pixels a side (then a pose rendered inside the first crop
-    /// scores exactly as there, and what the larger crop adds is only what lies outside it).
-    /// `None` when the mask has no pixel with a return, or when the first crop already holds
-    /// `held`.
-    pub fn from_depth_holding(
-        depth: &DepthImage,
-        k: &Intrinsics,
-        mask: &Mask,
-        held: (i64, i64, i64, i64),
-    ) -> Option<Observation> {
-        let ((u0, v0, u1, v1), step, rough) = mask_crop(depth, mask)?;
-        let (w, h) = (depth.width as i64, depth.height as i64);
-        let (hu0, hu1) = (
-            held.0.clamp(0, w - 1) as usize,
-            held.2.clamp(0, w - 1) as usize,
-        );
-        let (hv0, hv1) = (
-            held.1.clamp(0, h - 1) as usize,
-            held.3.clamp(0, h - 1) as usize,
-        );
-        if hu0 >= u0 && hv0 >= v0 && hu1 <= u1 && hv1 <= v1 {
+        let (w, h) = (depth.width as usize, depth.height as usize);
+        let (mut u0, mut v0, mut u1, mut v1) = (usize::MAX, usize::MAX, 0usize, 0usize);
+        for v in 0..h {
+            for u in 0..w {
+                if mask.data[v * w + u] && depth.data[v * w + u] > 0.0 {
+                    u0 = u0.min(u);
+                    v0 = v0.min(v);
+                    u1 = u1.max(u);
+                    v1 = v1.max(v);
+                }
+            }
+        }
+        if u0 == usize::MAX {
             return None;
         }
-        // Whole steps outwards keep the first crop's pixels on the grid.
-        let out = |lo: usize, want: usize| {
-            let steps = lo.saturating_sub(want).div_ceil(step).min(lo / step);
-            lo - steps * step
+        let grow = |lo: usize, hi: usize, max: usize| {
+            let m = ((hi - lo + 1) as f64 * 0.3).ceil() as usize;
+            (lo.saturating_sub(m), (hi + m).min(max - 1))
         };
-        let (nu0, nv0) = (out(u0, hu0), out(v0, hv0));
-        let (nu1, nv1) = (u1.max(hu1), v1.max(hv1));
-        let side = (nu1 - nu0 + 1).max(nv1 - nv0 + 1);
-        let step = if side.div_ceil(step) > WHOLE_VIEW_SIDE as usize {
-            side.div_ceil(WHOLE_VIEW_SIDE as usize)
-        } else {
-            step
-        };
-        Some(Observation::sample(
-            depth,
-            k,
-            mask,
-            (nu0, nv0, nu1, nv1),
-            step,
-            rough,
-        ))
-    }
-
-    /// Every `step`-th pixel of the crop `(u0, v0, u1, v1)` (inclusive) of `depth` and `mask`.
-    fn sample(
-        depth: &DepthImage,
-        k: &Intrinsics,
-        mask: &Mask,
-        (u0, v0, u1, v1): (usize, usize, usize, usize),
-        f: usize,
-        roughness: f32,
-    ) -> Observation {
-        let (w, h) = (depth.width as usize, depth.height as usize);
+        let rough = roughness(depth, mask, (u0, v0, u1, v1));
+        let (u0, u1) = grow(u0, u1, w);
+        let (v0, v1) = grow(v0, v1, h);
         let (cw, ch) = (u1 - u0 + 1, v1 - v0 + 1);
+        let f = cw.max(ch).div_ceil(SCORE_SIDE as usize).max(1);
         let (ow, oh) = (cw.div_ceil(f), ch.div_ceil(f));
         // Crop pixel i samples source pixel u0 + i·f + ⌊f/2⌋: the crop's camera puts its pixel
         // centres exactly there.
@@ -307,13 +202,13 @@ impl Observation {
                 mask_pixels += (inside && z > 0.0) as usize;
             }
         }
-        Observation {
+        Some(Observation {
             intrinsics,
             depth: d,
             mask: m,
             mask_pixels,
-            roughness,
-        }
+            roughness: rough,
+        })
     }
 
     /// From observed points alone (camera frame, normalised units; e.g. a registration
@@ -620,73 +515,6 @@ mod tests {
             assert!(right_pts.score > 0.8, "seed {seed}: {right_pts:?}");
             assert!(obs.score(&splat, &flip).score < right_pts.score - 0.2);
         }
-    }
-
-    #[test]
-    fn a_crop_grown_on_the_same_grid_scores_a_pose_inside_the_first_alike() {
-        for seed in [1, 2] {
-            let (depth, mask, k, mesh, truth) = scene(seed);
-            let held = projected_box(&mesh.vertices, &truth, &k).unwrap();
-            // The projection's box holds every pixel the object covers.
-            let w = k.width as usize;
-            for (i, _) in mask.data.iter().enumerate().filter(|(_, m)| **m) {
-                let (u, v) = ((i % w) as i64, (i / w) as i64);
-                assert!(u >= held.0 && u <= held.2 && v >= held.1 && v <= held.3);
-            }
-            // Already inside the mask's crop: nothing to grow.
-            assert!(Observation::from_depth_holding(&depth, &k, &mask, held).is_none());
-            let first = Observation::from_depth(&depth, &k, &mask).unwrap();
-            let grown =
-                Observation::from_depth_holding(&depth, &k, &mask, (0, 0, 159, 119)).unwrap();
-            assert!(grown.intrinsics.width > first.intrinsics.width);
-            assert_eq!(grown.intrinsics.fx, first.intrinsics.fx, "same step");
-            assert_eq!(grown.mask_pixels, first.mask_pixels);
-            let shape = ModelShape::Mesh(mesh);
-            let shifted = Pose::from_translation(DVec3::new(0.05, -0.03, 0.1)).compose(&truth);
-            for pose in [truth, shifted] {
-                assert_eq!(grown.score(&shape, &pose), first.score(&shape, &pose));
-            }
-        }
-    }
-
-    #[test]
-    fn a_model_running_past_a_small_mask_into_free_space_is_seen_only_by_the_whole_view() {
-        let (depth, mask, k, mesh, truth) = scene(1);
-        let w = k.width as usize;
-        // A 12×12-pixel fragment of the object around its pixels' mean.
-        let (mut su, mut sv, mut n) = (0usize, 0usize, 0usize);
-        for (i, _) in mask.data.iter().enumerate().filter(|(_, m)| **m) {
-            (su, sv, n) = (su + i % w, sv + i / w, n + 1);
-        }
-        let (uc, vc) = (su / n, sv / n);
-        let mut fragment = mask.clone();
-        for (i, m) in fragment.data.iter_mut().enumerate() {
-            *m &= (i % w).abs_diff(uc) < 6 && (i / w).abs_diff(vc) < 6;
-        }
-        let ((u0, v0, u1, v1), _, _) = mask_crop(&depth, &fragment).unwrap();
-        // Beyond the fragment's crop the sensor saw a wall far behind: the object is not there.
-        let mut walled = depth.clone();
-        for (i, z) in walled.data.iter_mut().enumerate() {
-            let (u, v) = (i % w, i / w);
-            if u < u0 || u > u1 || v < v0 || v > v1 {
-                *z = 10.0;
-            }
-        }
-        let shape = ModelShape::Mesh(mesh.clone());
-        let held = projected_box(&mesh.vertices, &truth, &k).unwrap();
-        let crop = Observation::from_depth(&walled, &k, &fragment)
-            .unwrap()
-            .score(&shape, &truth);
-        assert!(crop.score > 0.9 && crop.violation < 0.02, "{crop:?}");
-        let whole = Observation::from_depth_holding(&walled, &k, &fragment, held)
-            .unwrap()
-            .score(&shape, &truth);
-        assert!(whole.violation > 0.5, "{whole:?}");
-        // Where the object is really there, the whole view agrees as the crop does.
-        let there = Observation::from_depth_holding(&depth, &k, &fragment, held)
-            .unwrap()
-            .score(&shape, &truth);
-        assert!(there.violation < 0.02 && there.agreement > 0.9, "{there:?}");
     }
 
     #[test]
