@@ -10,10 +10,10 @@
 //! iterations take about the same in both).
 //!
 //! `main` calls [`rerun_in_release`] first for those commands (`Cmd::runs_long`: training,
-//! evaluation, data generation, the full bench): from a dev build it replaces the process with `cargo run
-//! --release -p xtask -- <the same arguments>` (same folder, so relative paths keep their
-//! meaning; on Unix the same process, so Ctrl-C and `kill -INT` reach the training loop, which
-//! saves a checkpoint first). `INCONTEXT_XTASK_DEV=1` keeps the dev build (e.g. to debug).
+//! evaluation, data generation, the full bench): from a dev build it replaces the process with
+//! `cargo run --release -p xtask -- <the same arguments>` (same folder, so relative paths keep
+//! their meaning; on Unix the same process, so Ctrl-C and `kill -INT` reach the training loop,
+//! which saves a checkpoint first). `INCONTEXT_XTASK_DEV=1` keeps the dev build (e.g. to debug).
 
 use anyhow::{Context, Result};
 
