@@ -86,8 +86,10 @@ pub struct EvalArgs {
     pub details: bool,
     /// --dataset, without --gt-mask: also register each of the best N instances the
     /// segmentation finds whose size fits the model, whatever its verdict, and write every
-    /// one with its errors (to the nearest true instance of the target) and its verification
-    /// to `candidates.jsonl` — the data for studying the verdict in clutter. 0 = off.
+    /// one with its errors (to the nearest true instance of the target), its verification and
+    /// its verified hypotheses (the pose network that made each, its score, its ADD-S to the
+    /// returned pose and to the truth, over the diameter) to `candidates.jsonl` — the data for
+    /// studying the verdict in clutter. 0 = off.
     #[arg(long, default_value_t = 0)]
     pub candidates: usize,
     /// A pose checkpoint instead of the shipped one (its head must be the methods' head); it
@@ -575,12 +577,14 @@ fn run_cases(args: &EvalArgs, root: &Path, methods: &[Method], seed: u64) -> Res
                                     "rival_score": r.rival_score,
                                     "evidence": r.evidence,
                                     "verified": r.verified.iter().map(|h| {
-                                        // {"R", "t", "score", "misfit", "icp_rmse"}: the pose's
-                                        // serde form and how well it explains the depth.
+                                        // {"R", "t", "score", "misfit", "icp_rmse", "network"}: the
+                                        // pose's serde form, how well it explains the depth and
+                                        // which pose network made it (0 main, 1 second).
                                         let mut v = json!(h.pose_normalised);
                                         v["score"] = json!(h.score);
                                         v["misfit"] = json!(h.misfit);
                                         v["icp_rmse"] = json!(h.icp_rmse);
+                                        v["network"] = json!(h.network);
                                         v
                                     }).collect::<Vec<_>>(),
                                     "stage_seconds": r.seconds,
@@ -1038,6 +1042,19 @@ fn candidate_line(
             .map(|s| ic_seg::post::iou(m, &s.mask_visib))
             .fold(0.0, f64::max)
     });
+    // Every verified hypothesis: which network made it, its score, and its ADD-S (over the
+    // diameter) to the returned pose and to the nearest true instance.
+    let verified: Vec<_> = r
+        .verified
+        .iter()
+        .map(|h| {
+            json!({
+                "network": h.network, "score": h.score, "misfit": h.misfit,
+                "to_pose": object.add_s(&h.pose_normalised, &r.pose_normalised) / diameter,
+                "to_truth": object.add_s(&h.pose_normalised, &nearest.pose) / diameter,
+            })
+        })
+        .collect();
     Ok(json!({
         "scene_id": target.scene_id, "im_id": target.im_id, "obj_id": target.obj_id,
         "method": method, "true_instances": samples.len(), "errors": e,
@@ -1045,6 +1062,7 @@ fn candidate_line(
         "confidence": r.confidence, "verdict": r.verdict, "verification": r.verification,
         "rival_score": r.rival_score, "evidence": r.evidence, "instance": r.instance,
         "segmentation": r.segmentation, "object_voxels": r.object_voxels,
+        "verified": verified,
     })
     .to_string())
 }

@@ -930,6 +930,9 @@ pub struct VerifiedHypothesis {
     pub icp_rmse: Option<f64>,
     /// Model → camera, normalised units.
     pub pose_normalised: Pose,
+    /// Which pose network made it: 0 the main one, 1 the second
+    /// ([`Pipeline::with_second_pose`]).
+    pub network: usize,
 }
 
 /// The rotation hypotheses of `incontext register` (and of [`PipelineBuilder`]) by default:
@@ -2168,8 +2171,9 @@ impl Pipeline {
         // others compete for the remaining places by the point-distance confidence; then the
         // further passes of the same network over them.
         let mut candidates: Vec<(f64, Pose, ic_pose::PoseEstimate)> = Vec::new();
+        let mut made_by: Vec<usize> = Vec::new();
         let mut made = 0;
-        for (estimator, mut mine) in networks.iter().zip(per_network) {
+        for (network, (estimator, mut mine)) in networks.iter().zip(per_network).enumerate() {
             if mine.is_empty() {
                 continue;
             }
@@ -2194,6 +2198,7 @@ impl Pipeline {
             }
             made += mine.len();
             mine.truncate(top);
+            made_by.extend(std::iter::repeat_n(network, mine.len()));
             candidates.extend(mine);
         }
         let top = candidates.len();
@@ -2207,7 +2212,7 @@ impl Pipeline {
         // The hypotheses are refined on at most VERIFY_ICP_POINTS voxels; the winner again on
         // up to `icp_max_points` below.
         let coarse = VERIFY_ICP_POINTS.min(self.options.icp_max_points);
-        for (_, one_shot, estimate) in candidates.iter().take(top) {
+        for ((_, one_shot, estimate), &network) in candidates.iter().zip(&made_by).take(top) {
             let (pose, icp) = self.refine_with(
                 target.as_ref(),
                 &voxels,
@@ -2221,6 +2226,7 @@ impl Pipeline {
             seconds.verification += t.elapsed().as_secs_f64();
             let hyp = Hypothesis {
                 pose,
+                network,
                 one_shot: *one_shot,
                 inlier_count: estimate.inlier_count,
                 assignment_confidence: estimate.assignment_confidence,
@@ -2243,6 +2249,7 @@ impl Pipeline {
                 misfit: s.misfit,
                 icp_rmse: h.icp.as_ref().map(|i| i.inlier_rmse),
                 pose_normalised: h.pose,
+                network: h.network,
             })
             .collect();
         let (mut score, mut best) = verified.swap_remove(winner);
@@ -2433,6 +2440,7 @@ impl Pipeline {
         let (pose, icp) = self.refine(target, voxels, &one_shot, &mut rng, seconds)?;
         Ok(Hypothesis {
             pose,
+            network: 0,
             one_shot,
             inlier_count: estimate.inlier_count,
             assignment_confidence: estimate.assignment_confidence,
@@ -2470,6 +2478,7 @@ fn draw_points(
 /// One pose hypothesis of [`Pipeline::register_observed`].
 struct Hypothesis {
     pose: Pose,
+    network: usize,
     one_shot: Pose,
     inlier_count: usize,
     assignment_confidence: f32,

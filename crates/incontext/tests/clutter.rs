@@ -304,6 +304,62 @@ fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
     assert!(!time_of.is_empty());
 }
 
+#[test]
+fn eval_candidates_lists_every_verified_hypothesis_with_its_network_and_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("clutter-bop");
+    write_clutter_bop(&root, 1);
+    let out = dir.path().join("eval");
+    let o = check(
+        &[
+            "eval",
+            "--dataset",
+            s(&root),
+            "--method",
+            "ours-softmax-verify",
+            "--candidates",
+            "2",
+            "--out",
+            s(&out),
+            "--json",
+            "--seed",
+            "3",
+        ],
+        0,
+        &[],
+    );
+    assert_eq!(json_stdout(&o)["mode"], "dataset");
+    let lines = jsonl(&out.join("candidates.jsonl"));
+    assert!(!lines.is_empty(), "no candidate registered");
+    for l in &lines {
+        let verified = l["verified"].as_array().unwrap();
+        // Both shipped pose networks verify their own hypotheses, the main network's first.
+        let networks: Vec<u64> = verified
+            .iter()
+            .map(|h| h["network"].as_u64().unwrap())
+            .collect();
+        assert!(
+            networks.contains(&0) && networks.contains(&1),
+            "{networks:?}"
+        );
+        assert!(networks.is_sorted(), "{networks:?}");
+        // The returned pose is the best-scoring hypothesis, at most refined once more.
+        let best = verified
+            .iter()
+            .max_by(|a, b| {
+                a["score"]
+                    .as_f64()
+                    .unwrap()
+                    .total_cmp(&b["score"].as_f64().unwrap())
+            })
+            .unwrap();
+        assert!(best["to_pose"].as_f64().unwrap() < 0.05, "{best}");
+        for h in verified {
+            assert!(h["to_truth"].as_f64().unwrap() >= 0.0, "{h}");
+        }
+    }
+}
+
 /// BOP scores a target of `inst_count` instances on its `inst_count` most visible true
 /// instances, and with `--gt-mask` each instance's pose comes from its own mask — even when
 /// the registration of an instance before it fails.
