@@ -2169,9 +2169,9 @@ impl Pipeline {
         // Each network's best `verify_top` go on to verification, the main network's first:
         // its first draw's unrotated estimate (the paper's pipeline) is always verified; the
         // others compete for the remaining places by the point-distance confidence; then the
-        // further passes of the same network over them.
-        let mut candidates: Vec<(f64, Pose, ic_pose::PoseEstimate)> = Vec::new();
-        let mut made_by: Vec<usize> = Vec::new();
+        // further passes of the same network over them. Each keeps the index of the network
+        // that made it.
+        let mut candidates: Vec<(usize, (f64, Pose, ic_pose::PoseEstimate))> = Vec::new();
         let mut made = 0;
         for (network, (estimator, mut mine)) in networks.iter().zip(per_network).enumerate() {
             if mine.is_empty() {
@@ -2198,8 +2198,7 @@ impl Pipeline {
             }
             made += mine.len();
             mine.truncate(top);
-            made_by.extend(std::iter::repeat_n(network, mine.len()));
-            candidates.extend(mine);
+            candidates.extend(mine.into_iter().map(|c| (network, c)));
         }
         let top = candidates.len();
         let shape = match &object.mesh {
@@ -2212,7 +2211,7 @@ impl Pipeline {
         // The hypotheses are refined on at most VERIFY_ICP_POINTS voxels; the winner again on
         // up to `icp_max_points` below.
         let coarse = VERIFY_ICP_POINTS.min(self.options.icp_max_points);
-        for ((_, one_shot, estimate), &network) in candidates.iter().zip(&made_by).take(top) {
+        for (network, (_, one_shot, estimate)) in candidates.iter().take(top) {
             let (pose, icp) = self.refine_with(
                 target.as_ref(),
                 &voxels,
@@ -2226,7 +2225,7 @@ impl Pipeline {
             seconds.verification += t.elapsed().as_secs_f64();
             let hyp = Hypothesis {
                 pose,
-                network,
+                network: *network,
                 one_shot: *one_shot,
                 inlier_count: estimate.inlier_count,
                 assignment_confidence: estimate.assignment_confidence,

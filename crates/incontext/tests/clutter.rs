@@ -232,23 +232,17 @@ fn write_clutter_bop(root: &Path, images: u64) {
     w.finish().unwrap();
 }
 
-/// `incontext eval --dataset root --gt-mask --out out --json --seed 3`, which must exit 0.
+/// `incontext eval --dataset root <extra> --out out --json --seed 3`, which must exit 0.
+fn eval_dataset(root: &Path, extra: &[&str], out: &Path) -> std::process::Output {
+    let mut args = vec!["eval", "--dataset", s(root)];
+    args.extend_from_slice(extra);
+    args.extend_from_slice(&["--out", s(out), "--json", "--seed", "3"]);
+    check(&args, 0, &[])
+}
+
+/// [`eval_dataset`] with `--gt-mask`.
 fn eval_with_true_masks(root: &Path, out: &Path) -> std::process::Output {
-    check(
-        &[
-            "eval",
-            "--dataset",
-            s(root),
-            "--gt-mask",
-            "--out",
-            s(out),
-            "--json",
-            "--seed",
-            "3",
-        ],
-        0,
-        &[],
-    )
+    eval_dataset(root, &["--gt-mask"], out)
 }
 
 fn read_json(path: &Path) -> serde_json::Value {
@@ -310,23 +304,10 @@ fn eval_candidates_lists_every_verified_hypothesis_with_its_network_and_errors()
     let root = dir.path().join("clutter-bop");
     write_clutter_bop(&root, 1);
     let out = dir.path().join("eval");
-    let o = check(
-        &[
-            "eval",
-            "--dataset",
-            s(&root),
-            "--method",
-            "ours-softmax-verify",
-            "--candidates",
-            "2",
-            "--out",
-            s(&out),
-            "--json",
-            "--seed",
-            "3",
-        ],
-        0,
-        &[],
+    let o = eval_dataset(
+        &root,
+        &["--method", "ours-softmax-verify", "--candidates", "2"],
+        &out,
     );
     assert_eq!(json_stdout(&o)["mode"], "dataset");
     let lines = jsonl(&out.join("candidates.jsonl"));
