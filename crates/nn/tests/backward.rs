@@ -3,10 +3,7 @@
 //! reaching it several times add up, and subtraction still subtracts.
 
 use candle_core::{Device, Tensor, Var};
-
-fn values(t: &Tensor) -> Vec<f32> {
-    t.flatten_all().unwrap().to_vec1().unwrap()
-}
+use ic_nn::ops::cpu::to_f32_vec;
 
 #[test]
 fn the_first_gradient_reaching_a_tensor_is_stored_as_is_not_added_to_zeros() {
@@ -16,7 +13,7 @@ fn the_first_gradient_reaching_a_tensor_is_stored_as_is_not_added_to_zeros() {
     let a = Tensor::new(&[-0.0f32, 2.0, -3.0], &Device::Cpu).unwrap();
     let loss = (x.as_tensor() * &a).unwrap().sum_all().unwrap();
     let grads = loss.backward().unwrap();
-    let g = values(grads.get(&x).unwrap());
+    let g = to_f32_vec(grads.get(&x).unwrap()).unwrap();
     assert_eq!(g, vec![0.0, 2.0, -3.0]);
     assert!(
         g[0].is_sign_negative(),
@@ -39,7 +36,7 @@ fn gradients_reaching_a_tensor_twice_add_up_and_subtraction_subtracts() {
     let grads = y.sum_all().unwrap().backward().unwrap();
     let g = grads.get(&x).unwrap();
     assert!(g.is_contiguous());
-    assert_eq!(values(g), vec![1.5, 4.0, 3.75, 3.0]);
+    assert_eq!(to_f32_vec(g).unwrap(), vec![1.5, 4.0, 3.75, 3.0]);
     // A gradient that reaches a tensor only through a transpose is stored contiguous.
     let m = Tensor::new(&[[1.0f32, 2.0], [3.0, 4.0]], &dev).unwrap();
     let grads = (xt.t().unwrap() * &m)
@@ -50,5 +47,5 @@ fn gradients_reaching_a_tensor_twice_add_up_and_subtraction_subtracts() {
         .unwrap();
     let g = grads.get(&x).unwrap();
     assert!(g.is_contiguous());
-    assert_eq!(values(g), vec![1.0, 3.0, 2.0, 4.0]);
+    assert_eq!(to_f32_vec(g).unwrap(), vec![1.0, 3.0, 2.0, 4.0]);
 }
