@@ -16,7 +16,7 @@ use std::sync::{Arc, Mutex};
 use candle_core::{CpuStorage, CustomOp3, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::cpu::{all_cpu_f32, f32_slice, to_f32_vec};
+use super::cpu::{all_cpu_f32, f32_data, f32_slice, zeros_f32};
 use super::fastmath::{Panels, dot_rows_panels, exp_approx, matmul, rows_times_matrix};
 use super::softmax::softmax_last;
 use super::{MatMut, MatRef};
@@ -327,14 +327,22 @@ fn backward_head(
 /// Copies per-(pair, head) blocks `[P, dh]` into the point-major `[B, P, d]` layout.
 fn merge_heads(parts: &[Vec<f32>], b: usize, p: usize, d: usize, heads: usize) -> Vec<f32> {
     let dh = d / heads;
-    let mut out = vec![0.0f32; b * p * d];
-    for (t, part) in parts.iter().enumerate() {
-        let (bi, h) = (t / heads, t % heads);
-        let base = bi * p * d + h * dh;
-        for (i, src) in part.chunks_exact(dh).enumerate() {
-            out[base + i * d..base + i * d + dh].copy_from_slice(src);
-        }
+    let mut out = zeros_f32(b * p * d);
+    if dh == 0 {
+        return out;
     }
+    // Row r = bi·p + i of the output gathers row i of each of batch bi's heads.
+    const ROWS: usize = 64;
+    out.par_chunks_mut(d * ROWS)
+        .enumerate()
+        .for_each(|(chunk, rows)| {
+            for (j, row) in rows.chunks_exact_mut(d).enumerate() {
+                let (bi, i) = ((chunk * ROWS + j) / p, (chunk * ROWS + j) % p);
+                for (h, dst) in row.chunks_exact_mut(dh).enumerate() {
+                    dst.copy_from_slice(&parts[bi * heads + h][i * dh..(i + 1) * dh]);
+                }
+            }
+        });
     out
 }
 
@@ -423,7 +431,7 @@ impl CustomOp3 for FusedAttention {
             heads,
         };
         let dh = dims.dh();
-        let flat = to_f32_vec;
+        let flat = f32_data;
         let (qv, kv, vv, ov, gv) = (flat(q)?, flat(k)?, flat(v)?, flat(res)?, flat(grad_res)?);
         let cached = self.lse.lock().unwrap_or_else(|e| e.into_inner()).clone();
         let lse = match cached {

@@ -13,7 +13,7 @@
 use candle_core::{CpuStorage, CustomOp2, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::cpu::{all_cpu_f32, f32_slice, to_f32_vec};
+use super::cpu::{all_cpu_f32, f32_data, f32_slice};
 use super::fastmath::matmul;
 use super::{MatMut, MatRef};
 
@@ -283,7 +283,7 @@ impl CustomOp2 for ConvSame {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let (b, c, h, wd) = x.dims4()?;
         let (o, _, k, _) = w.dims4()?;
-        let (xv, wv, gv) = (to_f32_vec(x)?, to_f32_vec(w)?, to_f32_vec(grad)?);
+        let (xv, wv, gv) = (f32_data(x)?, f32_data(w)?, f32_data(grad)?);
         let shape = ConvShape {
             batch: b,
             inputs: c,

@@ -10,7 +10,7 @@
 use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::cpu::{all_cpu_f32, f32_slice, to_f32_vec};
+use super::cpu::{all_cpu_f32, f32_data, f32_slice, zeros_f32};
 use super::fastmath::matmul_par;
 use super::{MatMut, MatRef};
 
@@ -102,9 +102,16 @@ impl CustomOp3 for FusedDense {
             f32_slice(s2, l2, "dense W")?,
             f32_slice(s3, l3, "dense b")?,
         );
-        let mut y = Vec::with_capacity(rows * out_dims);
-        for _ in 0..rows {
-            y.extend_from_slice(b);
+        // y starts as the bias in every row (written in parallel), the product is added to it
+        // (the same numbers as a serial fill), then the ReLU.
+        let mut y = zeros_f32(rows * out_dims);
+        let chunk = out_dims.max(1) * (1 + (1 << 12) / out_dims.max(1));
+        if out_dims > 0 {
+            y.par_chunks_mut(chunk).for_each(|c| {
+                for row in c.chunks_exact_mut(out_dims) {
+                    row.copy_from_slice(b);
+                }
+            });
         }
         matmul_par(
             MatRef::new(x, rows, in_dims, in_dims),
@@ -129,21 +136,22 @@ impl CustomOp3 for FusedDense {
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let (rows, in_dims) = x.dims2()?;
         let out_dims = w.dim(0)?;
-        let (xv, wv, mut g) = (to_f32_vec(x)?, to_f32_vec(w)?, to_f32_vec(grad)?);
-        if self.relu {
-            let y = to_f32_vec(res)?;
-            g.par_chunks_mut(1 << 14)
-                .zip(y.par_chunks(1 << 14))
-                .for_each(|(gc, yc)| {
-                    for (gv, &yv) in gc.iter_mut().zip(yc) {
-                        if yv <= 0.0 {
-                            *gv = 0.0;
-                        }
-                    }
-                });
-        }
-        let gm = MatRef::new(&g, rows, out_dims, out_dims);
-        let mut dx = vec![0.0f32; rows * in_dims];
+        let (xv, wv, gv) = (f32_data(x)?, f32_data(w)?, f32_data(grad)?);
+        let masked: Vec<f32>;
+        let g: &[f32] = if self.relu {
+            // The gradient through the ReLU, written in parallel into a new buffer.
+            let y = f32_data(res)?;
+            masked = gv
+                .par_iter()
+                .zip(y.par_iter())
+                .map(|(&gv, &yv)| if yv <= 0.0 { 0.0 } else { gv })
+                .collect();
+            &masked
+        } else {
+            &gv
+        };
+        let gm = MatRef::new(g, rows, out_dims, out_dims);
+        let mut dx = zeros_f32(rows * in_dims);
         matmul_par(
             gm,
             MatRef::new(&wv, out_dims, in_dims, in_dims),
@@ -214,7 +222,7 @@ impl CustomOp2 for ChannelLinear {
             f32_slice(s1, l1, "channel_linear W")?,
             f32_slice(s2, l2, "channel_linear x")?,
         );
-        let mut y = vec![0.0f32; b * co * p];
+        let mut y = zeros_f32(b * co * p);
         for (yb, xb) in y.chunks_exact_mut(co * p).zip(x.chunks_exact(c * p)) {
             matmul_par(
                 MatRef::new(w, co, c, c),
@@ -235,9 +243,9 @@ impl CustomOp2 for ChannelLinear {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let (co, c) = w.dims2()?;
         let (b, _, p) = x.dims3()?;
-        let (wv, xv, g) = (to_f32_vec(w)?, to_f32_vec(x)?, to_f32_vec(grad)?);
+        let (wv, xv, g) = (f32_data(w)?, f32_data(x)?, f32_data(grad)?);
         let wm = MatRef::new(&wv, co, c, c);
-        let mut dx = vec![0.0f32; b * c * p];
+        let mut dx = zeros_f32(b * c * p);
         let mut dw = vec![0.0f32; co * c];
         for (bi, (dxb, gb)) in dx
             .chunks_exact_mut(c * p)

@@ -66,7 +66,7 @@ impl NeighbourMax {
         if let Some(bad) = graph.iter().find(|&&j| j as usize >= p) {
             candle_core::bail!("neighbour_max: neighbour index {bad} ≥ {p} points");
         }
-        let mut out = vec![0.0f32; b * c * p];
+        let mut out = super::cpu::zeros_f32(b * c * p);
         let mut arg = vec![0u32; b * c * p];
         out.par_chunks_mut(p)
             .zip(arg.par_chunks_mut(p))
@@ -139,8 +139,8 @@ impl CustomOp2 for NeighbourMax {
                 Arc::new(self.run(&av, &gv, b, c, p)?.1)
             }
         };
-        let g: Vec<f32> = grad.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
-        let mut da = vec![0.0f32; b * c * p];
+        let g = super::cpu::f32_data(grad)?;
+        let mut da = super::cpu::zeros_f32(b * c * p);
         da.par_chunks_mut(p)
             .zip(g.par_chunks(p))
             .zip(arg.par_chunks(p))

@@ -8,7 +8,7 @@ use std::sync::{Arc, Mutex};
 use candle_core::{CpuStorage, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::cpu::{all_cpu_f32, f32_slice, to_f32_vec};
+use super::cpu::{all_cpu_f32, f32_data, f32_slice, zeros_f32};
 
 /// Layer normalisation over the last dimension of `x` (`[…, d]`) with weight and bias `[d]`:
 /// `(x − mean)/√(var + eps)·w + b` (biased variance).
@@ -136,7 +136,7 @@ impl CustomOp3 for FusedLayerNorm {
             f32_slice(s3, l3, "layer_norm b")?,
         );
         let stats = self.stats(x, d);
-        let mut y = vec![0.0f32; x.len()];
+        let mut y = zeros_f32(x.len());
         y.par_chunks_mut(d * ROWS_PER_TASK)
             .zip(x.par_chunks(d * ROWS_PER_TASK))
             .zip(stats.par_chunks(ROWS_PER_TASK))
@@ -162,13 +162,13 @@ impl CustomOp3 for FusedLayerNorm {
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let d = w.dim(0)?;
-        let (xv, wv, g) = (to_f32_vec(x)?, to_f32_vec(w)?, to_f32_vec(grad)?);
+        let (xv, wv, g) = (f32_data(x)?, f32_data(w)?, f32_data(grad)?);
         let cached = self.stats.lock().unwrap_or_else(|e| e.into_inner()).clone();
         let stats = match cached {
             Some(s) => s,
             None => Arc::new(self.stats(&xv, d)),
         };
-        let mut dx = vec![0.0f32; xv.len()];
+        let mut dx = zeros_f32(xv.len());
         let partials: Vec<(Vec<f32>, Vec<f32>)> = dx
             .par_chunks_mut(d * ROWS_PER_TASK)
             .zip(xv.par_chunks(d * ROWS_PER_TASK))
@@ -291,7 +291,7 @@ impl CustomOp3 for BnLeaky {
             Some(s) => s.clone(),
             None => Self::channel_stats(x, b, c, l),
         };
-        let mut y = vec![0.0f32; x.len()];
+        let mut y = zeros_f32(x.len());
         let slope = self.slope;
         y.par_chunks_mut(l)
             .zip(x.par_chunks(l))
@@ -321,7 +321,7 @@ impl CustomOp3 for BnLeaky {
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let (b, c, l) = x.dims3()?;
-        let flat = to_f32_vec;
+        let flat = f32_data;
         let (xv, wv, yv, gv) = (flat(x)?, flat(w)?, flat(res)?, flat(grad)?);
         let stats: Vec<(f32, f32)> = match &self.fixed {
             Some(s) => s.clone(),
@@ -373,7 +373,7 @@ impl CustomOp3 for BnLeaky {
                 (dgamma, dbeta, dx)
             })
             .collect();
-        let mut dx = vec![0.0f32; b * c * l];
+        let mut dx = zeros_f32(b * c * l);
         let mut dw = vec![0.0f32; c];
         let mut db = vec![0.0f32; c];
         for (ch, (dg, dbe, d)) in per_channel.into_iter().enumerate() {

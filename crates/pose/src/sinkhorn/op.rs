@@ -4,7 +4,7 @@
 
 use std::sync::{Arc, Mutex};
 
-use candle_core::{CpuStorage, CustomOp1, DType, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp1, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
 use super::log::{backward_pair, forward_pair};
@@ -129,8 +129,8 @@ impl CustomOp1 for LogOt {
     fn bwd(&self, arg: &Tensor, _res: &Tensor, grad_res: &Tensor) -> Result<Option<Tensor>> {
         let (b, m, n) = arg.dims3()?;
         let (m1, n1, k) = (m + 1, n + 1, self.iterations);
-        let s: Vec<f32> = arg.flatten_all()?.to_vec1()?;
-        let g: Vec<f32> = grad_res.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
+        let s = ic_nn::ops::cpu::f32_data(arg)?;
+        let g = ic_nn::ops::cpu::f32_data(grad_res)?;
         let cached = self
             .history
             .lock()
