@@ -1,7 +1,7 @@
 //! The fused CPU kernels of `ic_nn::ops` against their tensor-op references, in value and
 //! gradient: the multi-head attention over shapes that exercise several query blocks, a ragged
 //! last block, one key and more heads than pairs; the EdgeConv gather-max; layer norm; the
-//! dense layer; the 1×1 channel convolution. (Batch norm + LeakyReLU and the micro-kernels are
+//! dense layer; the 1×1 channel convolution; the U-Net's max pooling and up-sampling. (Batch norm + LeakyReLU and the micro-kernels are
 //! tested beside their code.)
 
 use candle_core::{Device, Tensor, Var};
@@ -271,4 +271,60 @@ fn fused_channel_linear_matches_broadcast_matmul() {
             "channel linear output/gradient {i}"
         );
     }
+}
+
+/// `[B, C, H, W]` values on a coarse grid (steps of 0.5 in [−2, 2]), so that 2×2 windows
+/// often hold their max twice or more.
+fn coarse_image(dims: (usize, usize, usize, usize), seed: u64) -> Tensor {
+    let n = dims.0 * dims.1 * dims.2 * dims.3;
+    let v: Vec<f32> = flat(&randn((1, 1, n), 1.0, seed))
+        .iter()
+        .map(|x| (x * 2.0).round().clamp(-4.0, 4.0) / 2.0)
+        .collect();
+    Tensor::from_vec(v, dims, &Device::Cpu).unwrap()
+}
+
+#[test]
+fn fused_max_pool_matches_tensor_ops_with_ties_in_value_and_gradient() {
+    use ic_nn::ops::pool::{max_pool2, max_pool2_reference};
+    let x = Var::from_tensor(&coarse_image((2, 3, 6, 8), 21)).unwrap();
+    let w = randn((2, 3, 12), 1.0, 22).reshape((2, 3, 3, 4)).unwrap();
+    let fused = value_and_grads(|t| max_pool2(t).unwrap(), &x, &[], &w);
+    let reference = value_and_grads(|t| max_pool2_reference(t).unwrap(), &x, &[], &w);
+    // Ties are common on this grid: every tied input gets the gradient, as in candle's max.
+    let xv = flat(x.as_tensor());
+    let tied = (0..2 * 3 * 3 * 4)
+        .filter(|&o| {
+            let (p, i, j) = (o / 12, (o % 12) / 4, o % 4);
+            let at = |r: usize, c: usize| xv[p * 48 + r * 8 + c];
+            let win = [
+                at(2 * i, 2 * j),
+                at(2 * i, 2 * j + 1),
+                at(2 * i + 1, 2 * j),
+                at(2 * i + 1, 2 * j + 1),
+            ];
+            let m = win.iter().cloned().fold(f32::MIN, f32::max);
+            win.iter().filter(|&&v| v == m).count() > 1
+        })
+        .count();
+    assert!(tied > 5, "only {tied} tied windows");
+    assert_eq!(fused, reference);
+}
+
+#[test]
+fn fused_upsample_matches_the_broadcast_in_value_and_gradient() {
+    use ic_nn::ops::pool::{upsample2, upsample2_reference};
+    let x = Var::from_tensor(&randn((2, 3, 20), 1.0, 23).reshape((2, 3, 4, 5)).unwrap()).unwrap();
+    let w = randn((2, 3, 80), 1.0, 24).reshape((2, 3, 8, 10)).unwrap();
+    let fused = value_and_grads(|t| upsample2(t).unwrap(), &x, &[], &w);
+    let reference = value_and_grads(|t| upsample2_reference(t).unwrap(), &x, &[], &w);
+    // The same four gradients summed in the same order: equal, not merely close.
+    assert_eq!(fused, reference);
+}
+
+#[test]
+fn max_pool_rejects_an_odd_side() {
+    let x = Tensor::zeros((1, 2, 5, 4), candle_core::DType::F32, &Device::Cpu).unwrap();
+    let err = ic_nn::ops::pool::max_pool2(&x).unwrap_err().to_string();
+    assert!(err.contains("5×4") && err.contains("even"), "{err}");
 }

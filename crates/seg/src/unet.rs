@@ -60,24 +60,11 @@ impl Conv2d {
     }
 }
 
-/// 2×2 max pooling, stride 2, as a reshape and a last-dimension max (fast, with a backward).
-pub fn max_pool2(x: &Tensor) -> Result<Tensor> {
-    let (b, c, h, w) = x.dims4()?;
-    x.reshape((b, c, h / 2, 2, w / 2, 2))?
-        .permute((0, 1, 2, 4, 3, 5))?
-        .contiguous()?
-        .reshape((b, c, h / 2, w / 2, 4))?
-        .max(4)
-}
-
-/// 2× nearest-neighbour up-sampling as a broadcast (its backward is a sum; candle's
-/// `upsample_nearest2d` backward overwrites instead of accumulating).
-pub fn upsample2(x: &Tensor) -> Result<Tensor> {
-    let (b, c, h, w) = x.dims4()?;
-    x.reshape((b, c, h, 1, w, 1))?
-        .broadcast_as((b, c, h, 2, w, 2))?
-        .reshape((b, c, 2 * h, 2 * w))
-}
+/// 2×2 max pooling (stride 2) and 2× nearest-neighbour up-sampling of `[B, C, H, W]`: fused
+/// CPU ops with their backward passes on the rayon pool (the tensor-op versions, their oracle,
+/// are `ic_nn::ops::pool::*_reference`; candle's `upsample_nearest2d` backward overwrites
+/// instead of accumulating, so neither is candle's own).
+pub use ic_nn::ops::pool::{max_pool2, upsample2};
 
 /// 3×3 convolution → batch norm → ReLU.
 #[derive(Clone, Debug)]

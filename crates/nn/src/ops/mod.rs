@@ -14,6 +14,7 @@
 //! | [`norm`] | layer norm over the last dimension, batch norm + LeakyReLU over `[B, C, L]` |
 //! | [`softmax`] | softmax and log-softmax over the last dimension |
 //! | [`gather`] | the EdgeConv gather-max over a k-NN graph |
+//! | [`pool`] | the U-Net's 2×2 max pooling and 2× nearest up-sampling of images |
 //! | [`cpu`] | storage slices and tensor values for the ops' glue |
 //!
 //! Matrices are passed as views ([`MatRef`], [`MatMut`]: slice, rows, columns, strides, checked
@@ -28,6 +29,7 @@ pub mod fastmath;
 pub mod gather;
 mod mat;
 pub mod norm;
+pub mod pool;
 pub mod softmax;
 
 pub use mat::{MatMut, MatRef};
