@@ -13,7 +13,7 @@
 use candle_core::{CpuStorage, CustomOp2, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::cpu::{all_cpu_f32, f32_data, f32_slice};
+use super::cpu::{all_cpu_f32, f32_data, f32_slice, zeros_f32};
 use super::fastmath::matmul;
 use super::{MatMut, MatRef};
 
@@ -188,13 +188,23 @@ pub fn convolve(x: &[f32], weight: &[f32], d: ConvShape) -> Vec<f32> {
             ((bi, y0), out)
         })
         .collect();
-    let mut y = vec![0.0f32; d.batch * o * h * w];
-    for ((bi, y0), out) in strips {
-        let n = out.len() / o.max(1);
-        for j in 0..o {
-            let at = (bi * o + j) * h * w + y0 * w;
-            y[at..at + n].copy_from_slice(&out[j * n..(j + 1) * n]);
-        }
+    // Each output plane (image, channel) gathers its rows from its image's strips, the planes
+    // in parallel.
+    let mut by_image: Vec<Vec<(usize, &[f32])>> = vec![Vec::new(); d.batch];
+    for ((bi, y0), out) in &strips {
+        by_image[*bi].push((*y0, out));
+    }
+    let mut y = zeros_f32(d.batch * o * h * w);
+    if o * h * w > 0 {
+        y.par_chunks_mut(h * w)
+            .enumerate()
+            .for_each(|(plane, dst)| {
+                let (bi, j) = (plane / o, plane % o);
+                for &(y0, out) in &by_image[bi] {
+                    let n = out.len() / o;
+                    dst[y0 * w..y0 * w + n].copy_from_slice(&out[j * n..(j + 1) * n]);
+                }
+            });
     }
     y
 }
@@ -217,12 +227,17 @@ fn weight_gradient(x: &[f32], g: &[f32], d: ConvShape) -> Vec<f32> {
             dw
         })
         .collect();
-    let mut dw = vec![0.0f32; o * ck];
-    for p in &partials {
-        for (a, v) in dw.iter_mut().zip(p) {
-            *a += v;
+    // The partial sums added in strip order (the same bits at every thread count), over
+    // chunks of dW in parallel.
+    const CHUNK: usize = 1 << 12;
+    let mut dw = zeros_f32(o * ck);
+    dw.par_chunks_mut(CHUNK).enumerate().for_each(|(ci, acc)| {
+        for p in &partials {
+            for (a, v) in acc.iter_mut().zip(&p[ci * CHUNK..]) {
+                *a += v;
+            }
         }
-    }
+    });
     dw
 }
 
