@@ -36,6 +36,7 @@ use ic_pose::{Head, Refine};
 use ic_seg::PostConfig;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::models::{LoadedPose, LoadedSeg};
@@ -2132,24 +2133,20 @@ impl Pipeline {
                 let estimates = estimator.estimate_rotations(&x, &rotations, &y, &sweep)?;
                 seconds.pose_network += t.elapsed().as_secs_f64();
                 let t = Instant::now();
+                // Every estimate of the copies in order (a copy whose correspondences admit no
+                // pose is one hypothesis fewer), then their point-distance confidences in
+                // parallel.
+                let mut found: Vec<ic_pose::PoseEstimate> = Vec::new();
                 for e in estimates {
-                    // A copy whose correspondences admit no pose is one hypothesis fewer.
                     match e {
                         Ok(c) => {
                             let e = c.estimate;
-                            candidates.push((self.explained(object, &ranking, &e.pose), e.pose, e));
-                            for s in c.sampled {
-                                let e = ic_pose::PoseEstimate {
-                                    pose: s.pose,
-                                    inlier_count: s.inliers,
-                                    ..e
-                                };
-                                candidates.push((
-                                    self.explained(object, &ranking, &s.pose),
-                                    s.pose,
-                                    e,
-                                ));
-                            }
+                            found.push(e);
+                            found.extend(c.sampled.iter().map(|s| ic_pose::PoseEstimate {
+                                pose: s.pose,
+                                inlier_count: s.inliers,
+                                ..e
+                            }));
                         }
                         Err(err) => {
                             tracing::debug!("a rotated copy gave no pose: {err}");
@@ -2157,6 +2154,16 @@ impl Pipeline {
                         }
                     }
                 }
+                let explained: Vec<f64> = found
+                    .par_iter()
+                    .map(|e| self.explained(object, &ranking, &e.pose))
+                    .collect();
+                candidates.extend(
+                    found
+                        .into_iter()
+                        .zip(explained)
+                        .map(|(e, confidence)| (confidence, e.pose, e)),
+                );
                 seconds.ranking += t.elapsed().as_secs_f64();
             }
             first_draw.get_or_insert((x, y));
@@ -2211,18 +2218,55 @@ impl Pipeline {
         // The hypotheses are refined on at most VERIFY_ICP_POINTS voxels; the winner again on
         // up to `icp_max_points` below.
         let coarse = VERIFY_ICP_POINTS.min(self.options.icp_max_points);
-        for (network, (_, one_shot, estimate)) in candidates.iter().take(top) {
-            let (pose, icp) = self.refine_with(
-                target.as_ref(),
-                &voxels,
-                one_shot,
-                coarse,
-                &mut rng,
-                &mut seconds,
-            )?;
-            let t = Instant::now();
-            let score = observation.score(&shape, &pose);
-            seconds.verification += t.elapsed().as_secs_f64();
+        // Each hypothesis's ICP points are drawn first, in the list's order (the draws of
+        // refining them one after the other), then the hypotheses are refined and scored in
+        // parallel: the same poses and scores on any number of threads.
+        let sources: Vec<Option<Vec<Vec3>>> = match &target {
+            None => vec![None; top],
+            Some(_) => candidates[..top]
+                .iter()
+                .map(|_| icp_source(&voxels, coarse, &mut rng).map(Some))
+                .collect::<Result<_>>()?,
+        };
+        let t = Instant::now();
+        let done: Vec<Result<Refined>> = candidates[..top]
+            .par_iter()
+            .zip(&sources)
+            .map(|((_, (_, one_shot, _)), source)| {
+                let t_icp = Instant::now();
+                let (pose, icp) = match (&target, source) {
+                    (Some(target), Some(source)) => {
+                        let (pose, icp) = self.icp_from(target, source, one_shot)?;
+                        (pose, Some(icp))
+                    }
+                    _ => (*one_shot, None),
+                };
+                let icp_seconds = t_icp.elapsed().as_secs_f64();
+                let t_score = Instant::now();
+                let score = observation.score(&shape, &pose);
+                Ok(Refined {
+                    pose,
+                    icp,
+                    score,
+                    icp_seconds,
+                    score_seconds: t_score.elapsed().as_secs_f64(),
+                })
+            })
+            .collect();
+        // The block's wall time, split between the stages as their summed times are.
+        let (icp_s, score_s) = done.iter().flatten().fold((0.0, 0.0), |(a, b), d| {
+            (a + d.icp_seconds, b + d.score_seconds)
+        });
+        let wall = t.elapsed().as_secs_f64();
+        let busy = icp_s + score_s;
+        if busy > 0.0 {
+            seconds.icp += wall * icp_s / busy;
+            seconds.verification += wall * score_s / busy;
+        }
+        for ((network, (_, one_shot, estimate)), d) in candidates[..top].iter().zip(done) {
+            let Refined {
+                pose, icp, score, ..
+            } = d?;
             let hyp = Hypothesis {
                 pose,
                 network: *network,
@@ -2389,33 +2433,37 @@ impl Pipeline {
             None => Ok((*one_shot, None)),
             Some(target) => {
                 let t = Instant::now();
-                let max_points = max_points.max(3);
-                let source: Vec<Vec3> = if voxels.len() > max_points {
-                    random_subsample_indices(voxels.len(), max_points, rng)?
-                        .into_iter()
-                        .map(|i| voxels[i])
-                        .collect()
-                } else {
-                    voxels.to_vec()
-                };
-                let options = IcpOptions {
-                    method: IcpMethod::PointToPlane,
-                    max_correspondence_distance: self.options.icp_max_distance,
-                    max_iterations: self.options.icp_iterations,
-                    ..IcpOptions::default()
-                };
-                let result = target.register(&source, &one_shot.inverse(), &options)?;
+                let source = icp_source(voxels, max_points, rng)?;
+                let (pose, icp) = self.icp_from(target, &source, one_shot)?;
                 seconds.icp += t.elapsed().as_secs_f64();
-                Ok((
-                    result.pose.inverse().orthonormalised(),
-                    Some(IcpSummary {
-                        fitness: result.fitness,
-                        inlier_rmse: result.inlier_rmse,
-                        iterations: result.iterations,
-                    }),
-                ))
+                Ok((pose, Some(icp)))
             }
         }
+    }
+
+    /// ICP of `source` (object voxels, camera frame, normalised units) onto `target` from
+    /// `one_shot`: the refined pose (model → camera) and its summary.
+    fn icp_from(
+        &self,
+        target: &IcpTarget,
+        source: &[Vec3],
+        one_shot: &Pose,
+    ) -> Result<(Pose, IcpSummary)> {
+        let options = IcpOptions {
+            method: IcpMethod::PointToPlane,
+            max_correspondence_distance: self.options.icp_max_distance,
+            max_iterations: self.options.icp_iterations,
+            ..IcpOptions::default()
+        };
+        let result = target.register(source, &one_shot.inverse(), &options)?;
+        Ok((
+            result.pose.inverse().orthonormalised(),
+            IcpSummary {
+                fitness: result.fitness,
+                inlier_rmse: result.inlier_rmse,
+                iterations: result.iterations,
+            },
+        ))
     }
 
     /// One draw of M model and N observed points, the network and ICP.
@@ -2446,6 +2494,29 @@ impl Pipeline {
             icp,
         })
     }
+}
+
+/// One verified hypothesis after its ICP and scoring, with the seconds each took.
+struct Refined {
+    pose: Pose,
+    icp: Option<IcpSummary>,
+    score: crate::verify::Score,
+    icp_seconds: f64,
+    score_seconds: f64,
+}
+
+/// The ICP source of a refinement: at most `max_points` (at least 3) of `voxels`, drawn with
+/// `rng` when there are more, else all of them.
+fn icp_source(voxels: &[Vec3], max_points: usize, rng: &mut ChaCha8Rng) -> Result<Vec<Vec3>> {
+    let max_points = max_points.max(3);
+    Ok(if voxels.len() > max_points {
+        random_subsample_indices(voxels.len(), max_points, rng)?
+            .into_iter()
+            .map(|i| voxels[i])
+            .collect()
+    } else {
+        voxels.to_vec()
+    })
 }
 
 /// The seed of hypothesis `h`: hypothesis 0 draws from `seed` itself, so one hypothesis is the
