@@ -70,6 +70,11 @@ fn rotation_hypotheses_find_the_pose_verify_it_and_repeat_exactly() {
     );
     assert_eq!(a["pose"], b["pose"]);
     assert_eq!(a["details"]["verification"], b["details"]["verification"]);
+    // The hypotheses are refined and scored in parallel: the rival (the best score of the
+    // verified poses unlike the winner) and the confidence built on it repeat too.
+    assert!(a["details"]["rival_score"].is_f64(), "{a:#}");
+    assert_eq!(a["details"]["rival_score"], b["details"]["rival_score"]);
+    assert_eq!(a["confidence"], b["confidence"]);
 }
 
 #[test]
