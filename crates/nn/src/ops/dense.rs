@@ -105,9 +105,9 @@ impl CustomOp3 for FusedDense {
         // y starts as the bias in every row (written in parallel), the product is added to it
         // (the same numbers as a serial fill), then the ReLU.
         let mut y = zeros_f32(rows * out_dims);
-        let chunk = out_dims.max(1) * (1 + (1 << 12) / out_dims.max(1));
-        if out_dims > 0 {
-            y.par_chunks_mut(chunk).for_each(|c| {
+        // Tasks of about 4 096 values, whole rows (none without outputs).
+        if let Some(per_task) = (1usize << 12).checked_div(out_dims) {
+            y.par_chunks_mut(out_dims * (per_task + 1)).for_each(|c| {
                 for row in c.chunks_exact_mut(out_dims) {
                     row.copy_from_slice(b);
                 }
