@@ -87,9 +87,40 @@ pub struct PostArgs {
     /// `false`; twice the network's time).
     #[arg(long)]
     mirror_average: Option<bool>,
+    /// More input sizes the network also runs at, each `WIDTHxHEIGHT` (comma-separated, e.g.
+    /// `384x288`; `none` clears them): `register` pools every size's instances as candidates
+    /// (`ic_seg::PostConfig::extra_inputs`).
+    #[arg(long, value_parser = parse_input_sizes)]
+    extra_inputs: Option<InputSizes>,
     /// Four-output networks: ignore the centre offsets (the instances of the cores alone).
     #[arg(long, conflicts_with_all = ["centre_split", "centre_merge", "centre_min_share", "centre_spread_floor"])]
     no_centres: bool,
+}
+
+/// Input sizes of `--extra-inputs` (a newtype: clap reads a bare `Vec` as a repeated flag).
+#[derive(Clone, Debug)]
+pub struct InputSizes(Vec<(u32, u32)>);
+
+/// `WIDTHxHEIGHT[,WIDTHxHEIGHT…]` or `none`.
+fn parse_input_sizes(s: &str) -> std::result::Result<InputSizes, String> {
+    if s.trim() == "none" {
+        return Ok(InputSizes(Vec::new()));
+    }
+    s.split(',')
+        .map(|one| {
+            let (w, h) = one
+                .trim()
+                .split_once(['x', '×'])
+                .ok_or_else(|| format!("{one:?}: expected WIDTHxHEIGHT, e.g. 384x288"))?;
+            let side = |v: &str| {
+                v.trim()
+                    .parse::<u32>()
+                    .map_err(|e| format!("{one:?}: {v:?} is not a pixel count ({e})"))
+            };
+            Ok((side(w)?, side(h)?))
+        })
+        .collect::<std::result::Result<Vec<_>, String>>()
+        .map(InputSizes)
 }
 
 /// `cargo xtask seg-post`: writes the weights of `--model` with new post-processing settings
@@ -118,6 +149,9 @@ pub fn set_post(args: PostArgs) -> Result<()> {
     }
     if let Some(v) = args.mirror_average {
         p.mirror_average = v;
+    }
+    if let Some(InputSizes(v)) = args.extra_inputs {
+        p.extra_inputs = v;
     }
     if let Some(v) = args.input_width {
         cfg.net.input_width = v;

@@ -588,8 +588,64 @@ pub struct InstanceCandidate {
     /// How many of the network's instances it joins: 1, or more for touching instances each
     /// too small to be the object that together fit its size ([`crate::parts`]).
     pub parts: usize,
+    /// Which input size of the segmentation network found it: 0 its own, `i` the `i`-th of
+    /// [`ic_seg::PostConfig::extra_inputs`].
+    pub input: usize,
     #[serde(skip)]
     pub mask: Mask,
+}
+
+/// A candidate of a later input size whose mask overlaps one of an earlier candidate's by at
+/// least this IoU is the same instance found again, and dropped.
+pub const DUPLICATE_IOU: f64 = 0.7;
+
+/// A mask's pixels as sorted indices with their bounding box, for overlaps of sparse masks
+/// without sweeping whole images.
+struct PixelSet {
+    indices: Vec<u32>,
+    /// `(x0, y0, x1, y1)` inclusive; meaningless when empty.
+    bbox: (u32, u32, u32, u32),
+}
+
+impl PixelSet {
+    fn of(mask: &Mask) -> PixelSet {
+        let w = mask.width.max(1);
+        let mut bbox = (u32::MAX, u32::MAX, 0, 0);
+        let indices: Vec<u32> = (0..mask.data.len() as u32)
+            .filter(|&i| mask.data[i as usize])
+            .inspect(|&i| {
+                let (x, y) = (i % w, i / w);
+                bbox = (bbox.0.min(x), bbox.1.min(y), bbox.2.max(x), bbox.3.max(y));
+            })
+            .collect();
+        PixelSet { indices, bbox }
+    }
+
+    /// Intersection over union (0 when both are empty).
+    fn iou(&self, other: &PixelSet) -> f64 {
+        let (a, b) = (&self.indices, &other.indices);
+        let union_max = a.len() + b.len();
+        if union_max == 0 {
+            return 0.0;
+        }
+        let (p, q) = (self.bbox, other.bbox);
+        if a.is_empty() || b.is_empty() || p.0 > q.2 || q.0 > p.2 || p.1 > q.3 || q.1 > p.3 {
+            return 0.0;
+        }
+        let (mut i, mut j, mut both) = (0, 0, 0usize);
+        while i < a.len() && j < b.len() {
+            match a[i].cmp(&b[j]) {
+                std::cmp::Ordering::Less => i += 1,
+                std::cmp::Ordering::Greater => j += 1,
+                std::cmp::Ordering::Equal => {
+                    both += 1;
+                    i += 1;
+                    j += 1;
+                }
+            }
+        }
+        both as f64 / (union_max - both) as f64
+    }
 }
 
 /// The visible extent of back-projected points (their units): twice the 90th percentile of
@@ -700,6 +756,7 @@ impl InstanceCandidate {
             truncated: touches_border(&mask, frame),
             cut,
             parts,
+            input: 0,
             mask,
         }
     }
@@ -709,13 +766,14 @@ impl InstanceCandidate {
     /// [`TYPICAL_SIZE_RATIO`]: whole in the image before cut off by its border, the network's
     /// own instances before joined parts, by pixels; then the rest by the size ratio nearest
     /// it (in log scale); then the segmentation score.
-    fn rank_key(&self) -> (bool, bool, bool, bool, bool, f64, f32) {
+    fn rank_key(&self) -> (bool, bool, bool, bool, bool, bool, f64, f32) {
         let off = (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs();
         let close = off <= CLOSE_SIZE_FACTOR.ln();
         (
             self.plausible,
             !self.cut,
             close,
+            self.input == 0,
             !(close && self.truncated),
             self.parts == 1,
             if close { self.pixels as f64 } else { -off },
@@ -766,8 +824,9 @@ impl InstanceCandidate {
                 .then(kb.2.cmp(&ka.2))
                 .then(kb.3.cmp(&ka.3))
                 .then(kb.4.cmp(&ka.4))
-                .then(kb.5.total_cmp(&ka.5))
+                .then(kb.5.cmp(&ka.5))
                 .then(kb.6.total_cmp(&ka.6))
+                .then(kb.7.total_cmp(&ka.7))
         });
     }
 }
@@ -918,6 +977,8 @@ pub struct InstanceChoice {
     /// chose it (`candidates` and `rank` then count that network's instances) or confirmed
     /// it as a lone object (the single-object calibration then applies).
     pub one_object_network: bool,
+    /// Which input size of the segmentation network found it ([`InstanceCandidate::input`]).
+    pub input: usize,
 }
 
 /// One verified hypothesis of [`Registration::verified`].
@@ -1502,7 +1563,10 @@ impl Pipeline {
         Self::candidates_of(seg, object, depth_n, intrinsics)
     }
 
-    /// [`Pipeline::instance_candidates`] of the network `seg`.
+    /// [`Pipeline::instance_candidates`] of the network `seg`: the candidates of each of its
+    /// input sizes ([`ic_seg::PostConfig::extra_inputs`]) pooled, the network's own size
+    /// first; a candidate of a later size whose mask is nearly one of an earlier candidate's
+    /// (IoU ≥ [`DUPLICATE_IOU`]) is dropped.
     fn candidates_of(
         seg: &LoadedSeg,
         object: &Object,
@@ -1510,8 +1574,42 @@ impl Pipeline {
         intrinsics: &Intrinsics,
     ) -> Result<Vec<InstanceCandidate>> {
         let post = &seg.segmenter.config().post;
-        let found = seg.segmenter.instances(depth_n, intrinsics)?;
-        let best_score = found.first().map(|i| i.score);
+        let per_input = seg.segmenter.instances_per_input(depth_n, intrinsics)?;
+        let best_score = per_input.iter().flatten().map(|i| i.score).reduce(f32::max);
+        let mut out: Vec<InstanceCandidate> = Vec::new();
+        let mut kept: Vec<PixelSet> = Vec::new();
+        for (input, found) in per_input.into_iter().enumerate() {
+            for mut c in Self::partition_candidates(post, found, object, depth_n, intrinsics)? {
+                let pixels = PixelSet::of(&c.mask);
+                if input > 0 && kept.iter().any(|k| k.iou(&pixels) >= DUPLICATE_IOU) {
+                    continue;
+                }
+                c.input = input;
+                kept.push(pixels);
+                out.push(c);
+            }
+        }
+        if out.is_empty() {
+            return Err(PipelineError::not_found(format!(
+                "object not found: the segmentation found no object instance scoring above {} (best score {})",
+                post.score_threshold,
+                best_score.map_or("none".into(), |s| format!("{s:.3}"))
+            )));
+        }
+        InstanceCandidate::rank(&mut out);
+        Ok(out)
+    }
+
+    /// The candidates of one input size's instances `found`: the network's instances scoring
+    /// above the threshold (or standing off the support), touching parts joined, pieces cut
+    /// from heaps; unranked.
+    fn partition_candidates(
+        post: &ic_seg::PostConfig,
+        found: Vec<ic_seg::post::Instance>,
+        object: &Object,
+        depth_n: &DepthImage,
+        intrinsics: &Intrinsics,
+    ) -> Result<Vec<InstanceCandidate>> {
         let diameter = object.diameter.max(1e-9);
         let frame = sensor_frame(depth_n);
         let mut out = Vec::new();
@@ -1609,14 +1707,6 @@ impl Pipeline {
                 cut += 1;
             }
         }
-        if out.is_empty() {
-            return Err(PipelineError::not_found(format!(
-                "object not found: the segmentation found no object instance scoring above {} (best score {})",
-                post.score_threshold,
-                best_score.map_or("none".into(), |s| format!("{s:.3}"))
-            )));
-        }
-        InstanceCandidate::rank(&mut out);
         Ok(out)
     }
 
@@ -1642,9 +1732,11 @@ impl Pipeline {
                 Err(e) => return Err(e),
             };
         let seg_seconds = t.elapsed().as_secs_f64();
+        // The network's own instances at its own input size (an extra size's find the same
+        // objects again): more than one means clutter.
         let network_instances = all_candidates
             .iter()
-            .filter(|c| c.parts == 1 && !c.cut)
+            .filter(|c| c.parts == 1 && !c.cut && c.input == 0)
             .count();
         let per_group = match search {
             InstanceSearch::FirstOk => self.options.instance_tries,
@@ -1736,6 +1828,7 @@ impl Pipeline {
                 truncated: c.truncated,
                 cut: c.cut,
                 one_object_network: false,
+                input: c.input,
             };
             let clutter = network_instances > 1 || c.cut;
             // The further network passes go to the best-ranked instance only: in clutter
@@ -1794,6 +1887,7 @@ impl Pipeline {
                         truncated: c.truncated,
                         cut: c.cut,
                         one_object_network: true,
+                        input: c.input,
                     };
                     // Kept when `ok`, or when the main network gave nothing: in clutter the
                     // one-object network's instances are rarely the object, and an `uncertain`
@@ -2581,6 +2675,58 @@ mod tests {
     use ic_geometry::glam::DVec3;
 
     #[test]
+    fn pixel_set_overlap_is_the_masks_iou_and_disjoint_boxes_give_zero() {
+        let rect = |x0: usize, y0: usize, x1: usize, y1: usize| {
+            let mut m = Mask::filled(20, 10, false);
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    m.data[y * 20 + x] = true;
+                }
+            }
+            m
+        };
+        // The dense IoU over the whole image, the oracle.
+        let dense = |a: &Mask, b: &Mask| {
+            let both = a
+                .data
+                .iter()
+                .zip(&b.data)
+                .filter(|(p, q)| **p && **q)
+                .count();
+            let either = a
+                .data
+                .iter()
+                .zip(&b.data)
+                .filter(|(p, q)| **p || **q)
+                .count();
+            if either == 0 {
+                0.0
+            } else {
+                both as f64 / either as f64
+            }
+        };
+        let masks = [
+            rect(0, 0, 5, 5),
+            rect(3, 2, 9, 8),
+            rect(3, 2, 9, 8),
+            rect(10, 0, 20, 10), // beside the first, no shared column
+            rect(4, 4, 5, 5),    // one pixel inside the first two
+            rect(0, 0, 0, 0),    // empty
+        ];
+        for a in &masks {
+            for b in &masks {
+                let got = PixelSet::of(a).iou(&PixelSet::of(b));
+                assert!(
+                    (got - dense(a, b)).abs() < 1e-12,
+                    "{got} vs {}",
+                    dense(a, b)
+                );
+            }
+        }
+        assert_eq!(PixelSet::of(&masks[1]).iou(&PixelSet::of(&masks[2])), 1.0);
+    }
+
+    #[test]
     fn among_instances_of_a_fitting_size_the_least_hidden_is_tried_first() {
         let c = |size_ratio: f64, pixels: usize, score: f32| InstanceCandidate {
             score,
@@ -2591,6 +2737,7 @@ mod tests {
             truncated: false,
             cut: false,
             parts: 1,
+            input: 0,
             mask: Mask::filled(1, 1, false),
         };
         let mut v = vec![
@@ -2646,6 +2793,7 @@ mod tests {
             truncated: false,
             cut,
             parts: 1,
+            input: 0,
             mask: Mask::filled(1, 1, false),
         };
         let mut v = vec![

@@ -511,3 +511,67 @@ fn a_lone_object_the_clutter_network_cuts_into_parts_is_registered_whole_by_the_
         r.pose
     );
 }
+
+#[test]
+fn an_extra_input_size_adds_only_instances_not_found_at_the_networks_own() {
+    // The lone composite the clutter network cuts into parts: several instances.
+    let (object, depth, intrinsics, _) = lone_composite_scene();
+    let depth_n = object.normalised_depth(&depth);
+    let candidates = |extra: Vec<(u32, u32)>| {
+        let mut seg = incontext::models::load_seg(None).unwrap();
+        seg.segmenter.config_mut().post.extra_inputs = extra;
+        let pose = incontext::models::load_pose(None, None).unwrap();
+        let pipeline = incontext::Pipeline::new(pose, Some(seg), Default::default());
+        pipeline
+            .instance_candidates(&object, &depth_n, &intrinsics)
+            .unwrap()
+    };
+    let masks = |c: &[incontext::pipeline::InstanceCandidate]| -> Vec<Vec<bool>> {
+        c.iter().map(|c| c.mask.data.clone()).collect()
+    };
+    let own = candidates(Vec::new());
+    assert!(own.len() >= 2, "{own:?}");
+    assert!(own.iter().all(|c| c.input == 0));
+    // The network's own size again finds every instance again: nothing is added.
+    let (w, h) = {
+        let cfg = incontext::models::load_seg(None).unwrap();
+        let net = &cfg.segmenter.config().net;
+        (net.input_width, net.input_height)
+    };
+    assert_eq!(masks(&candidates(vec![(w, h)])), masks(&own));
+    // A finer size: every candidate of the own size is still there; what it adds comes from
+    // it and overlaps none of those by the duplicate IoU; the same twice.
+    let pooled = candidates(vec![(w * 3 / 2, h * 3 / 2)]);
+    assert_eq!(
+        masks(&pooled),
+        masks(&candidates(vec![(w * 3 / 2, h * 3 / 2)]))
+    );
+    let pooled_own: Vec<Vec<bool>> = pooled
+        .iter()
+        .filter(|c| c.input == 0)
+        .map(|c| c.mask.data.clone())
+        .collect();
+    let mut sorted_own = masks(&own);
+    sorted_own.sort();
+    let mut sorted_pooled_own = pooled_own.clone();
+    sorted_pooled_own.sort();
+    assert_eq!(sorted_pooled_own, sorted_own);
+    let iou = |a: &[bool], b: &[bool]| {
+        let both = a.iter().zip(b).filter(|(p, q)| **p && **q).count();
+        let either = a.iter().zip(b).filter(|(p, q)| **p || **q).count();
+        both as f64 / either.max(1) as f64
+    };
+    // On this scene the finer size cuts parts the own size did not (else this test could not
+    // tell a size that is ignored).
+    assert!(
+        pooled.iter().any(|c| c.input == 1),
+        "{} own, {} pooled",
+        own.len(),
+        pooled.len()
+    );
+    for c in pooled.iter().filter(|c| c.input == 1) {
+        for o in &pooled_own {
+            assert!(iou(&c.mask.data, o) < incontext::pipeline::DUPLICATE_IOU);
+        }
+    }
+}

@@ -190,7 +190,24 @@ pub struct PostConfig {
     /// and its mirror image are equally likely: objects fall at random, gravity stays down).
     #[serde(default)]
     pub mirror_average: bool,
+    /// More input sizes `(width, height)` (pixels) the network also runs at, besides its own
+    /// `input_width × input_height`: [`crate::Segmenter::instances_per_input`] gives each
+    /// size's instances, each size's set a partition of its own, for a pipeline that pools
+    /// them as candidates (a finer input cuts apart touching objects that the training size
+    /// joins; a coarser one keeps whole what it cuts). Empty (the default): the network's own
+    /// size alone. At most [`MAX_EXTRA_INPUTS`], each side at most [`MAX_INPUT_SIDE`] and
+    /// divisible like the network's own.
+    #[serde(default)]
+    pub extra_inputs: Vec<(u32, u32)>,
 }
+
+/// The most extra input sizes [`PostConfig::extra_inputs`] may list (each costs a pass of
+/// the network).
+pub const MAX_EXTRA_INPUTS: usize = 4;
+
+/// The longest side, in pixels, of an extra input size (a 2048×2048 input takes ≈ 0.5 GiB
+/// of activations at the presets' widths).
+pub const MAX_INPUT_SIDE: u32 = 2048;
 
 fn default_core_threshold() -> f32 {
     0.5
@@ -255,6 +272,7 @@ impl Default for PostConfig {
             support: None,
             centres: None,
             mirror_average: false,
+            extra_inputs: Vec::new(),
         }
     }
 }
@@ -550,6 +568,21 @@ impl SegConfig {
         }
         if let Some(c) = &p.centres {
             c.validate()?;
+        }
+        if p.extra_inputs.len() > MAX_EXTRA_INPUTS {
+            return Err(SegError::Config(format!(
+                "{} extra input sizes; at most {MAX_EXTRA_INPUTS}",
+                p.extra_inputs.len()
+            )));
+        }
+        let div = 1u32 << (self.net.channels.len() - 1);
+        for &(w, h) in &p.extra_inputs {
+            if w == 0 || h == 0 || w % div != 0 || h % div != 0 || w.max(h) > MAX_INPUT_SIDE {
+                return Err(SegError::Config(format!(
+                    "extra input {w}×{h} must be positive, divisible by {div} for {} levels and at most {MAX_INPUT_SIDE} a side",
+                    self.net.channels.len()
+                )));
+            }
         }
         let t = &self.train;
         let weight = |v: f64| v >= 0.0 && v.is_finite();

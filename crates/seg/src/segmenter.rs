@@ -248,6 +248,34 @@ impl Segmenter {
         Ok(self.instances_inner(depth, intrinsics, false)?.0)
     }
 
+    /// [`Segmenter::instances`] at the network's own input size, then at each size of
+    /// `post.extra_inputs` in its order: one list per input size, each a partition of its
+    /// own (instances of different sizes overlap). The same weights run at every size (the
+    /// network is fully convolutional); the post-processing settings are shared.
+    ///
+    /// Errors: as [`Segmenter::instances`].
+    pub fn instances_per_input(
+        &self,
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+    ) -> Result<Vec<Vec<Instance>>> {
+        let mut out = vec![self.instances(depth, intrinsics)?];
+        for &(width, height) in &self.config.post.extra_inputs {
+            out.push(self.at_input(width, height).instances(depth, intrinsics)?);
+        }
+        Ok(out)
+    }
+
+    /// This segmenter with the network's input size `width × height` (pixels) and no extra
+    /// input sizes (the weights are shared, not copied).
+    pub fn at_input(&self, width: u32, height: u32) -> Segmenter {
+        let mut s = self.clone();
+        s.config.net.input_width = width;
+        s.config.net.input_height = height;
+        s.config.post.extra_inputs.clear();
+        s
+    }
+
     /// [`Segmenter::instances`] and, from the same pass of the network, a four-output
     /// network's centre votes (where each pixel says its instance's centre is, in pixels of
     /// `depth`; `None` without centre offsets), whether or not `post.centres` uses them.

@@ -580,3 +580,55 @@ fn every_preset_the_unknown_preset_error_names_exists_validates_and_round_trips(
         );
     }
 }
+
+#[test]
+fn each_extra_input_size_gives_its_own_instances_and_bad_sizes_are_refused() {
+    // A two-output network after a few steps (random weights find nothing), run on a scene
+    // larger than its 32×24 input so that each input size sees it at another scale.
+    let cfg = SegConfig::tiny();
+    let mut trainer = SegTrainer::new(cfg.clone(), 4).unwrap();
+    for _ in 0..30 {
+        trainer.step(&examples(&cfg)).unwrap();
+    }
+    let mut seg = trainer.segmenter();
+    seg.config_mut().post.score_threshold = 0.0;
+    let (depth, _) = scene(3);
+    let k = camera();
+    let own = seg.instances(&depth, &k).unwrap();
+    // No extra size: one list, the plain instances.
+    let lists = seg.instances_per_input(&depth, &k).unwrap();
+    assert_eq!(lists.len(), 1);
+    let masks = |l: &[ic_seg::post::Instance]| l.iter().map(|i| i.mask.clone()).collect::<Vec<_>>();
+    assert_eq!(masks(&lists[0]), masks(&own));
+    // Two extra sizes: the own size's list first, then each size's as its own segmenter.
+    seg.config_mut().post.extra_inputs = vec![(64, 48), (16, 16)];
+    seg.config().validate().unwrap();
+    let lists = seg.instances_per_input(&depth, &k).unwrap();
+    assert_eq!(lists.len(), 3);
+    assert_eq!(masks(&lists[0]), masks(&own));
+    for (list, (w, h)) in lists[1..].iter().zip([(64, 48), (16, 16)]) {
+        let alone = seg.at_input(w, h);
+        assert!(alone.config().post.extra_inputs.is_empty());
+        assert_eq!(masks(list), masks(&alone.instances(&depth, &k).unwrap()));
+    }
+    // The coarser size sees another image: at least one list differs from the own size's
+    // (else this test could not tell a size that is ignored).
+    assert!(lists[1..].iter().any(|l| masks(l) != masks(&own)));
+    // Refused: a side not divisible for the levels, a zero side, one too large, too many.
+    for bad in [
+        vec![(33, 24)],
+        vec![(0, 24)],
+        vec![(4096, 24)],
+        vec![(32, 24); ic_seg::config::MAX_EXTRA_INPUTS + 1],
+    ] {
+        let mut c = seg.config().clone();
+        c.post.extra_inputs = bad.clone();
+        let err = c.validate().unwrap_err().to_string();
+        assert!(err.contains("extra input"), "{bad:?}: {err}");
+    }
+    // A file written before the field existed reads with no extra size.
+    let mut json = serde_json::to_value(cfg.post.clone()).unwrap();
+    json.as_object_mut().unwrap().remove("extra_inputs");
+    let post: ic_seg::PostConfig = serde_json::from_value(json).unwrap();
+    assert!(post.extra_inputs.is_empty());
+}

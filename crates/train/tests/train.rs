@@ -516,12 +516,28 @@ fn a_clutter_segmentation_run_trains_two_outputs_and_validates_instances() {
         };
         let report = ic_train::seg::eval(&args).unwrap();
         let csv = std::fs::read_to_string(report_path.with_extension("csv")).unwrap();
+        let header: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
+        let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+        let (miss, best, pooled) = (
+            col("target_miss"),
+            col("target_best_iou"),
+            col("target_best_iou_pooled"),
+        );
+        // Without extra input sizes the pooled candidates are the own size's instances.
+        for row in csv.lines().skip(1) {
+            let cols: Vec<&str> = row.split(',').collect();
+            assert_eq!(cols[best], cols[pooled], "{row}");
+        }
+        assert_eq!(
+            report["pooled_target_found_rate"],
+            report["instances"]["target_found_rate"]
+        );
         let missed: Vec<String> = csv
             .lines()
             .skip(1)
             .filter_map(|row| {
                 let cols: Vec<&str> = row.split(',').collect();
-                let kind = cols[cols.len() - 2];
+                let kind = cols[miss];
                 (!kind.is_empty())
                     .then(|| format!("miss-{:04}-{kind}.png", cols[0].parse::<u32>().unwrap()))
             })
