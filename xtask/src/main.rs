@@ -274,7 +274,8 @@ fn test() -> Result<()> {
         "--all-targets",
     ])?;
     python_tests()?;
-    // The small accuracy/speed bench (about 1.5 min on 2 cores), so `cargo xtask bench` and
+    // The small accuracy/speed bench (about 11 min on 2 cores: our methods on the small case
+    // sets, then the clutter and IC-BIN scenes), so `cargo xtask bench` and
     // `incontext eval --cases` cannot rot; writes under target/bench-quick/ only.
     if std::env::var_os("INCONTEXT_SKIP_BENCH").is_some() {
         eprintln!("== INCONTEXT_SKIP_BENCH is set: skipping `cargo xtask bench --quick`");
