@@ -763,9 +763,11 @@ impl InstanceCandidate {
 
     /// Ranking key: plausible first; the network's instances (and joined parts) before
     /// pieces cut from heaps; then those within [`CLOSE_SIZE_FACTOR`] of
-    /// [`TYPICAL_SIZE_RATIO`]: whole in the image before cut off by its border, the network's
-    /// own instances before joined parts, by pixels; then the rest by the size ratio nearest
-    /// it (in log scale); then the segmentation score.
+    /// [`TYPICAL_SIZE_RATIO`]: those of the network's own input size before an extra size's
+    /// ([`InstanceCandidate::input`]), whole in the image before cut off by its border, the
+    /// network's own instances before joined parts, by pixels; then the rest by the size
+    /// ratio nearest it (in log scale), again the own input size's first; then the
+    /// segmentation score.
     fn rank_key(&self) -> (bool, bool, bool, bool, bool, bool, f64, f32) {
         let off = (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs();
         let close = off <= CLOSE_SIZE_FACTOR.ln();
@@ -813,9 +815,9 @@ impl InstanceCandidate {
 
     /// Sorts `candidates` best first: plausible ones first, the network's instances (and
     /// joined parts) before pieces cut from heaps, then those within [`CLOSE_SIZE_FACTOR`] of
-    /// [`TYPICAL_SIZE_RATIO`] (whole in the image before cut off by its border, instances
-    /// before joined parts, most pixels first), then the rest by the size ratio nearest it,
-    /// then the segmentation score.
+    /// [`TYPICAL_SIZE_RATIO`] (the network's own input size before an extra size's, whole in
+    /// the image before cut off by its border, instances before joined parts, most pixels
+    /// first), then the rest by the size ratio nearest it, then the segmentation score.
     pub fn rank(candidates: &mut [InstanceCandidate]) {
         candidates.sort_by(|a, b| {
             let (ka, kb) = (a.rank_key(), b.rank_key());
@@ -1576,18 +1578,25 @@ impl Pipeline {
         let post = &seg.segmenter.config().post;
         let per_input = seg.segmenter.instances_per_input(depth_n, intrinsics)?;
         let best_score = per_input.iter().flatten().map(|i| i.score).reduce(f32::max);
+        let sizes = per_input.len();
         let mut out: Vec<InstanceCandidate> = Vec::new();
-        let mut kept: Vec<PixelSet> = Vec::new();
+        // The pixels of the candidates of the sizes before the current one (none needed
+        // without extra sizes).
+        let mut earlier: Vec<PixelSet> = Vec::new();
         for (input, found) in per_input.into_iter().enumerate() {
+            let mut this_size = Vec::new();
             for mut c in Self::partition_candidates(post, found, object, depth_n, intrinsics)? {
-                let pixels = PixelSet::of(&c.mask);
-                if input > 0 && kept.iter().any(|k| k.iou(&pixels) >= DUPLICATE_IOU) {
-                    continue;
+                if sizes > 1 {
+                    let pixels = PixelSet::of(&c.mask);
+                    if earlier.iter().any(|k| k.iou(&pixels) >= DUPLICATE_IOU) {
+                        continue;
+                    }
+                    this_size.push(pixels);
                 }
                 c.input = input;
-                kept.push(pixels);
                 out.push(c);
             }
+            earlier.extend(this_size);
         }
         if out.is_empty() {
             return Err(PipelineError::not_found(format!(
@@ -2780,6 +2789,23 @@ mod tests {
         InstanceCandidate::rank(&mut v);
         let order: Vec<usize> = v.iter().map(|c| c.pixels).collect();
         assert_eq!(order, [1600, 900, 12000, 2500, 5000, 9000, 20000]);
+
+        // An extra input size's candidates come after the own size's of the same fit, even
+        // with more pixels or a nearer size ratio, and before those that fit worse.
+        v.push(InstanceCandidate {
+            input: 1,
+            ..c(0.8, 30000, 0.9)
+        });
+        v.push(InstanceCandidate {
+            input: 1,
+            ..c(0.44, 100, 0.9)
+        });
+        InstanceCandidate::rank(&mut v);
+        let order: Vec<usize> = v.iter().map(|c| c.pixels).collect();
+        assert_eq!(
+            order,
+            [1600, 900, 12000, 2500, 30000, 5000, 9000, 100, 20000]
+        );
     }
 
     #[test]
