@@ -113,9 +113,10 @@ impl UNetConfig {
             || self.input_height == 0
             || self.input_width % div != 0
             || self.input_height % div != 0
+            || self.input_width.max(self.input_height) > MAX_INPUT_SIDE
         {
             return bad(format!(
-                "input {}×{} must be positive and divisible by {div} for {} levels",
+                "input {}×{} must be positive, divisible by {div} for {} levels and at most {MAX_INPUT_SIDE} a side",
                 self.input_width,
                 self.input_height,
                 self.channels.len()
@@ -205,8 +206,9 @@ pub struct PostConfig {
 /// the network).
 pub const MAX_EXTRA_INPUTS: usize = 4;
 
-/// The longest side, in pixels, of an extra input size (a 2048×2048 input takes ≈ 0.5 GiB
-/// of activations at the presets' widths).
+/// The longest side, in pixels, of the network's input, its own or an extra size (at
+/// 2048×2048 one 16-channel feature map of the first level holds 256 MiB): a checkpoint
+/// asking for more is refused rather than allowed to take the machine's memory.
 pub const MAX_INPUT_SIDE: u32 = 2048;
 
 fn default_core_threshold() -> f32 {

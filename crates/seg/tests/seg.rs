@@ -626,6 +626,11 @@ fn each_extra_input_size_gives_its_own_instances_and_bad_sizes_are_refused() {
         let err = c.validate().unwrap_err().to_string();
         assert!(err.contains("extra input"), "{bad:?}: {err}");
     }
+    // Nor may the network's own input be larger than an extra one may.
+    let mut c = seg.config().clone();
+    c.net.input_width = 4096;
+    let err = c.validate().unwrap_err().to_string();
+    assert!(err.contains("at most 2048"), "{err}");
     // A file written before the field existed reads with no extra size.
     let mut json = serde_json::to_value(cfg.post.clone()).unwrap();
     json.as_object_mut().unwrap().remove("extra_inputs");
