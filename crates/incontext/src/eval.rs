@@ -78,7 +78,8 @@ pub struct EvalArgs {
     /// segmentation network.
     #[arg(long)]
     pub gt_mask: bool,
-    /// Only the first N images (--dataset) or cases (--cases).
+    /// Only the first N images (--dataset), cases (--cases) or frames (--frames, in name
+    /// order; at least 1).
     #[arg(long)]
     pub limit: Option<usize>,
     /// --cases: add a "details" object (confidence, point counts, stage seconds) to each line.
@@ -1117,7 +1118,15 @@ fn run_frames(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Res
         )));
     }
     let model_path = dir.join("model.ply");
-    let files = frame_files(dir)?;
+    let mut files = frame_files(dir)?;
+    if let Some(n) = args.limit {
+        if n == 0 {
+            return Err(CliError::input(
+                "--limit 0 leaves no frame to register (--frames takes the first N in name order)",
+            ));
+        }
+        files.truncate(n);
+    }
     let first = files[0].clone();
     let camera = inputs::read_camera(&dir.join("camera.json"), || inputs::depth_size(&first))?;
     let k = camera.intrinsics;

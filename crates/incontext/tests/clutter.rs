@@ -425,6 +425,8 @@ fn eval_frames_judges_each_pose_against_the_depth_without_ground_truth() {
     render_on_table(&frame, &[(shared, on_table(&mesh, 0.0, 0.0, 0.7))]);
     std::fs::rename(frame.join("depth.png"), frame.join("depth/0000.png")).unwrap();
     std::fs::rename(frame.join("camera.json"), dir.path().join("camera.json")).unwrap();
+    // A second frame, left out by --limit 1 (the first in name order is registered).
+    std::fs::copy(frame.join("depth/0000.png"), frame.join("depth/0001.png")).unwrap();
     let out = dir.path().join("out");
     let o = check(
         &[
@@ -436,6 +438,8 @@ fn eval_frames_judges_each_pose_against_the_depth_without_ground_truth() {
             "--json",
             "--seed",
             "2",
+            "--limit",
+            "1",
         ],
         0,
         &[],
@@ -454,9 +458,18 @@ fn eval_frames_judges_each_pose_against_the_depth_without_ground_truth() {
     .unwrap();
     assert!(line["best"]["agreement"]["agreement"].as_f64().unwrap() >= 0.8);
     assert!(std::path::Path::new(line["overlay"].as_str().unwrap()).is_file());
-    // A folder without depth maps is bad input.
+    assert!(
+        line["frame"].as_str().unwrap().ends_with("0000.png"),
+        "{line:#}"
+    );
+    // A folder without depth maps is bad input, and so is a limit that leaves no frame.
     let empty = tempfile::tempdir().unwrap();
     check(&["eval", "--frames", s(empty.path())], 2, &["no depth PNG"]);
+    check(
+        &["eval", "--frames", s(dir.path()), "--limit", "0"],
+        2,
+        &["--limit 0"],
+    );
 }
 
 /// The scene of `incontext demo --seed 50` (a procedural object of several parts, alone in

@@ -15,8 +15,8 @@
 //! 5. report — every JSONL file scored by `ic_eval::cases`, tables, accuracy plots, the
 //!    machine and the command (`report`: `markdown`, `json`).
 //!
-//! `--quick` is the small version CI can afford (20 + 10 cases, written under
-//! `target/bench-quick/`). `--criterion [NAMES]` (or just `cargo xtask bench NAME`) runs the
+//! `--quick` is the small version CI can afford (20 + 10 cases, 3 clutter scenes, the first
+//! 2 real frames of each folder, written under `target/bench-quick/`). `--criterion [NAMES]` (or just `cargo xtask bench NAME`) runs the
 //! criterion benchmarks of `benches/` instead, as before.
 //!
 //! This module is the one entry point (`bench::run`, called by `main`). Its modules depend one way, each only on those
@@ -96,8 +96,8 @@ pub struct BenchArgs {
     #[arg(long)]
     pub clutter_count: Option<u64>,
     /// Folder of real sensor frames (subfolders with model.ply, camera.json and depth PNGs),
-    /// each registered and judged against its depth map. Default: ../shared/data/real next to
-    /// the workspace, skipped when absent.
+    /// each registered and judged against its depth map (quick: the first 2 of each folder).
+    /// Default: ../shared/data/real next to the workspace, skipped when absent.
     #[arg(long)]
     pub frames: Option<PathBuf>,
     /// Folder of real object meshes with its `split.json` (train / val / test) for the real
@@ -144,6 +144,9 @@ pub struct BenchArgs {
     #[arg(long)]
     pub strict: bool,
 }
+
+/// Real frames per folder that `--quick` registers (the first in name order).
+const QUICK_FRAMES: usize = 2;
 
 fn default_objects(root: &Path, given: Option<&Path>, quick: bool) -> Result<Objects> {
     let candidate = given
@@ -356,8 +359,18 @@ pub fn run(args: BenchArgs) -> Result<()> {
         .clone()
         .unwrap_or_else(|| root.join("../shared/data/real"));
     if frames_dir.is_dir() {
-        report.frames =
-            scenes::frames(&root, &cli, &frames_dir, config.seed, &work, config.threads)?;
+        // The quick bench registers the first two frames of each folder (in the dev build a
+        // frame takes most of a minute): enough that the command cannot rot.
+        let limit = quick.then_some(QUICK_FRAMES);
+        report.frames = scenes::frames(
+            &root,
+            &cli,
+            &frames_dir,
+            config.seed,
+            &work,
+            config.threads,
+            limit,
+        )?;
     } else if args.frames.is_some() {
         bail!("--frames {}: not a folder", frames_dir.display());
     } else {

@@ -245,7 +245,8 @@ pub fn clutter(
     })
 }
 
-/// `incontext eval --frames` on every folder of `real` holding `model.ply` (sorted by name).
+/// `incontext eval --frames` on every folder of `real` holding `model.ply` (sorted by name);
+/// with `limit`, on the first frames of each (`eval --frames --limit`).
 pub fn frames(
     root: &Path,
     cli: &Cli,
@@ -253,6 +254,7 @@ pub fn frames(
     seed: u64,
     work: &Path,
     threads: usize,
+    limit: Option<usize>,
 ) -> Result<Vec<FramesReport>> {
     let mut dirs: Vec<PathBuf> = std::fs::read_dir(real)
         .with_context(|| format!("listing {}", real.display()))?
@@ -278,6 +280,9 @@ pub fn frames(
                     .arg(&dir)
                     .arg("--out")
                     .arg(&out_dir);
+                if let Some(n) = limit {
+                    cmd.arg("--limit").arg(n.to_string());
+                }
                 run_json(cmd, &work.join("runs").join(format!("frames-{name}.log")))
             }
         };
