@@ -2694,26 +2694,6 @@ mod tests {
             }
             m
         };
-        // The dense IoU over the whole image, the oracle.
-        let dense = |a: &Mask, b: &Mask| {
-            let both = a
-                .data
-                .iter()
-                .zip(&b.data)
-                .filter(|(p, q)| **p && **q)
-                .count();
-            let either = a
-                .data
-                .iter()
-                .zip(&b.data)
-                .filter(|(p, q)| **p || **q)
-                .count();
-            if either == 0 {
-                0.0
-            } else {
-                both as f64 / either as f64
-            }
-        };
         let masks = [
             rect(0, 0, 5, 5),
             rect(3, 2, 9, 8),
@@ -2724,11 +2704,12 @@ mod tests {
         ];
         for a in &masks {
             for b in &masks {
+                // The dense IoU over the whole image is the oracle.
                 let got = PixelSet::of(a).iou(&PixelSet::of(b));
                 assert!(
-                    (got - dense(a, b)).abs() < 1e-12,
+                    (got - mask_iou(a, b)).abs() < 1e-12,
                     "{got} vs {}",
-                    dense(a, b)
+                    mask_iou(a, b)
                 );
             }
         }
