@@ -103,25 +103,31 @@ impl UNetConfig {
         self.outputs == 4
     }
 
+    /// Checks an input size `width × height` (pixels) the network may run at: positive, each
+    /// side divisible by 2^(levels − 1) and at most [`MAX_INPUT_SIDE`]; `what` names it in
+    /// the error ("input", "extra input"). The channels must be checked first.
+    pub fn check_input(&self, what: &str, width: u32, height: u32) -> Result<()> {
+        let div = 1u32 << (self.channels.len() - 1);
+        if width == 0
+            || height == 0
+            || width % div != 0
+            || height % div != 0
+            || width.max(height) > MAX_INPUT_SIDE
+        {
+            return Err(SegError::Config(format!(
+                "{what} {width}×{height} must be positive, divisible by {div} for {} levels and at most {MAX_INPUT_SIDE} a side",
+                self.channels.len()
+            )));
+        }
+        Ok(())
+    }
+
     pub fn validate(&self) -> Result<()> {
         let bad = |m: String| Err(SegError::Config(m));
         if self.channels.is_empty() || self.channels.contains(&0) {
             return bad("channels must be non-empty and positive".into());
         }
-        let div = 1u32 << (self.channels.len() - 1);
-        if self.input_width == 0
-            || self.input_height == 0
-            || self.input_width % div != 0
-            || self.input_height % div != 0
-            || self.input_width.max(self.input_height) > MAX_INPUT_SIDE
-        {
-            return bad(format!(
-                "input {}×{} must be positive, divisible by {div} for {} levels and at most {MAX_INPUT_SIDE} a side",
-                self.input_width,
-                self.input_height,
-                self.channels.len()
-            ));
-        }
+        self.check_input("input", self.input_width, self.input_height)?;
         if ![1, 2, 4].contains(&self.outputs) {
             return bad(format!(
                 "outputs {} must be 1 (object), 2 (and core) or 4 (and centre offsets)",
@@ -577,14 +583,8 @@ impl SegConfig {
                 p.extra_inputs.len()
             )));
         }
-        let div = 1u32 << (self.net.channels.len() - 1);
         for &(w, h) in &p.extra_inputs {
-            if w == 0 || h == 0 || w % div != 0 || h % div != 0 || w.max(h) > MAX_INPUT_SIDE {
-                return Err(SegError::Config(format!(
-                    "extra input {w}×{h} must be positive, divisible by {div} for {} levels and at most {MAX_INPUT_SIDE} a side",
-                    self.net.channels.len()
-                )));
-            }
+            self.net.check_input("extra input", w, h)?;
         }
         let t = &self.train;
         let weight = |v: f64| v >= 0.0 && v.is_finite();
