@@ -478,6 +478,7 @@ fn human(ns: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::collections::{BTreeMap, BTreeSet};
 
     fn runs_long(args: &[&str]) -> bool {
         Cli::try_parse_from(std::iter::once("xtask").chain(args.iter().copied()))
@@ -505,5 +506,79 @@ mod tests {
         assert!(runs_long(&["train-seg", "--objects", "o", "--out", "x"]));
         assert!(runs_long(&["gen-data", "--out", "x"]));
         assert!(!runs_long(&["test"]));
+    }
+
+    /// Each package's features as `cargo tree` resolves them for `args`
+    /// (`name@version` → features).
+    fn resolved_features(args: &[&str]) -> BTreeMap<String, BTreeSet<String>> {
+        let out = Command::new(env!("CARGO"))
+            .current_dir(workspace_root())
+            .args(["tree", "--prefix", "none", "--format", "{p} {f}"])
+            .args(args)
+            .output()
+            .expect("running cargo tree");
+        assert!(
+            out.status.success(),
+            "cargo tree {args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let mut features: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+        for line in String::from_utf8_lossy(&out.stdout).lines() {
+            let mut words = line.split_whitespace();
+            let (Some(name), Some(version)) = (words.next(), words.next()) else {
+                continue;
+            };
+            // After the version: the path of a local package, `(proc-macro)`, the features
+            // (comma-separated, no spaces) and `(*)` for a repeated entry.
+            let listed = words
+                .filter(|w| !w.starts_with('('))
+                .flat_map(|w| w.split(','))
+                .map(str::to_owned);
+            features
+                .entry(format!("{name}@{version}"))
+                .or_default()
+                .extend(listed);
+        }
+        features
+    }
+
+    /// `cargo xtask test` builds xtask, then every test of the workspace, then the Python wheel:
+    /// a dependency the later builds resolve with other features is compiled again with
+    /// everything above it (≈ 6 minutes of CI on 2 cores when libc's features differed). The
+    /// feature-unification entries of xtask's and the Python module's `Cargo.toml` keep the
+    /// three graphs alike; a dependency update that adds a feature to one of them fails here,
+    /// naming the package.
+    #[test]
+    fn xtask_and_python_builds_resolve_the_features_of_the_workspace_tests() {
+        let tests = resolved_features(&["--workspace", "--edges", "normal,build,dev"]);
+        for (build, args) in [
+            ("xtask", ["-p", "xtask", "--edges", "normal,build"]),
+            (
+                "the Python wheel",
+                ["-p", "incontext-python", "--edges", "normal,build"],
+            ),
+        ] {
+            let this = resolved_features(&args);
+            assert!(this.len() > 100, "{build}: {} packages", this.len());
+            let differ: Vec<String> = this
+                .iter()
+                .filter_map(|(package, f)| {
+                    let t = tests.get(package)?;
+                    (t != f).then(|| {
+                        format!(
+                            "{package}: {build} {:?}, tests {:?}",
+                            f.iter().collect::<Vec<_>>(),
+                            t.iter().collect::<Vec<_>>()
+                        )
+                    })
+                })
+                .collect();
+            assert!(
+                differ.is_empty(),
+                "{build} resolves other features than `cargo test --workspace`; add them to its \
+                 Cargo.toml's feature-unification entries:\n{}",
+                differ.join("\n")
+            );
+        }
     }
 }
