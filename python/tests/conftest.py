@@ -17,10 +17,14 @@ SEED = 3
 
 @pytest.fixture(scope="session")
 def cli() -> Path:
-    """The `incontext` binary of this workspace (dev profile, as `cargo xtask test` builds it)."""
+    """The `incontext` binary of this workspace (dev profile, as `cargo xtask test` builds it).
+
+    `--workspace` resolves the features `cargo test --workspace` does, so the binary that build
+    made is reused; `-p incontext` alone resolves fewer and rebuilds candle and the engine.
+    """
     cargo = os.environ.get("CARGO", "cargo")
     subprocess.run(
-        [cargo, "build", "-q", "-p", "incontext", "--bin", "incontext"], cwd=ROOT, check=True
+        [cargo, "build", "-q", "--workspace", "--bin", "incontext"], cwd=ROOT, check=True
     )
     exe = ROOT / "target" / "debug" / "incontext"
     assert exe.is_file(), f"{exe} was not built"

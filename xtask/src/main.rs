@@ -542,7 +542,8 @@ mod tests {
         features
     }
 
-    /// `cargo xtask test` builds xtask, then every test of the workspace, then the Python wheel:
+    /// `cargo xtask test` builds xtask, then every test of the workspace, then the Python wheel
+    /// and (for the Python tests and the quick bench) the `incontext` binary:
     /// a dependency the later builds resolve with other features is compiled again with
     /// everything above it (≈ 6 minutes of CI on 2 cores when libc's features differed). The
     /// feature-unification entries of xtask's and the Python module's `Cargo.toml` keep the
@@ -552,13 +553,18 @@ mod tests {
     fn xtask_and_python_builds_resolve_the_features_of_the_workspace_tests() {
         let tests = resolved_features(&["--workspace", "--edges", "normal,build,dev"]);
         for (build, args) in [
-            ("xtask", ["-p", "xtask", "--edges", "normal,build"]),
+            ("xtask", &["-p", "xtask", "--edges", "normal,build"][..]),
+            // The bench's and the Python tests' `cargo build --workspace --bin incontext`.
+            (
+                "the workspace's binaries",
+                &["--workspace", "--edges", "normal,build"],
+            ),
             (
                 "the Python wheel",
-                ["-p", "incontext-python", "--edges", "normal,build"],
+                &["-p", "incontext-python", "--edges", "normal,build"],
             ),
         ] {
-            let this = resolved_features(&args);
+            let this = resolved_features(args);
             assert!(this.len() > 100, "{build}: {} packages", this.len());
             let differ: Vec<String> = this
                 .iter()

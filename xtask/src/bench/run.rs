@@ -129,9 +129,12 @@ pub fn probe_cli(root: &Path, given: Option<&Path>, release: bool) -> Cli {
                     ],
                 )
             } else {
+                // `--workspace`: the features the whole workspace resolves, those of `cargo
+                // test --workspace`, whose build of this binary is then reused (`-p incontext`
+                // alone resolves fewer and rebuilds candle and the engine).
                 (
                     root.join("target/debug/incontext"),
-                    &["build", "-p", "incontext", "--bin", "incontext"],
+                    &["build", "--workspace", "--bin", "incontext"],
                 )
             };
             if let Err(e) = crate::cargo(args) {
