@@ -16,8 +16,9 @@
 //!    machine and the command (`report`: `markdown`, `json`).
 //!
 //! `--quick` is the small version CI can afford (20 + 10 cases, 3 clutter scenes, the first
-//! 2 real frames of each folder, written under `target/bench-quick/`). `--criterion [NAMES]` (or just `cargo xtask bench NAME`) runs the
-//! criterion benchmarks of `benches/` instead, as before.
+//! 2 real frames of each folder, written under `target/bench-quick/`). `--criterion [NAMES]`
+//! (or just `cargo xtask bench NAME`) runs the criterion benchmarks of `benches/` instead, as
+//! before.
 //!
 //! This module is the one entry point (`bench::run`, called by `main`). Its modules depend one way, each only on those
 //! listed before it: `common` (progress bars, paths, atomic writes) ← `cases` ← `run` ← `speed`
