@@ -13,18 +13,23 @@ import incontext
 
 ROOT = Path(__file__).resolve().parents[2]
 SEED = 3
+# xtask's `TEST_FEATURES`: the features `cargo xtask test` builds the workspace with.
+TEST_FEATURES = "ic_render/gpu"
 
 
 @pytest.fixture(scope="session")
 def cli() -> Path:
     """The `incontext` binary of this workspace (dev profile, as `cargo xtask test` builds it).
 
-    `--workspace` resolves the features `cargo test --workspace` does, so the binary that build
-    made is reused; `-p incontext` alone resolves fewer and rebuilds candle and the engine.
+    `--workspace` with `TEST_FEATURES` (xtask/src/main.rs) resolves the features `cargo xtask
+    test` builds the tests with, so the binary that build made is reused; `-p incontext` alone
+    resolves fewer and rebuilds candle and the engine.
     """
     cargo = os.environ.get("CARGO", "cargo")
     subprocess.run(
-        [cargo, "build", "-q", "--workspace", "--bin", "incontext"], cwd=ROOT, check=True
+        [cargo, "build", "-q", "--workspace", "--features", TEST_FEATURES, "--bin", "incontext"],
+        cwd=ROOT,
+        check=True,
     )
     exe = ROOT / "target" / "debug" / "incontext"
     assert exe.is_file(), f"{exe} was not built"

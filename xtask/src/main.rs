@@ -249,6 +249,16 @@ fn cargo(args: &[&str]) -> Result<()> {
     Ok(())
 }
 
+/// The features `cargo xtask test` builds the workspace with: ic_render's wgpu backend (off
+/// by default; its tests fail without an adapter, and CI has Mesa's lavapipe). Every build of
+/// the test command (xtask itself, the tests, the Python wheel, the `incontext` binary of the
+/// Python tests and the quick bench) resolves this one feature set, so none compiles a
+/// dependency again with other features (a separate `cargo test -p ic_render --features gpu`
+/// resolved its own graph and recompiled ≈ 95 packages, 4–6.5 minutes of CI on 2 cores).
+/// Pinned by the test `xtask_and_python_builds_resolve_the_features_of_the_workspace_tests`;
+/// `python/tests/conftest.py` names the same feature.
+pub(crate) const TEST_FEATURES: &str = "ic_render/gpu";
+
 fn test() -> Result<()> {
     // The gates first: formatting, then clippy on every target with warnings as errors (the
     // workspace lints of Cargo.toml included).
@@ -261,18 +271,16 @@ fn test() -> Result<()> {
         "-D",
         "warnings",
     ])?;
-    cargo(&["test", "--workspace", "--all-targets"])?;
-    cargo(&["test", "--workspace", "--doc"])?;
-    // The wgpu backend is off by default (ic_render's `gpu` feature): its tests (which fail
-    // without an adapter; CI has Mesa's lavapipe) run here with the feature on.
+    // Clippy above checks the default build (the wgpu backend off, as users build); the tests
+    // run with it on (`TEST_FEATURES`), so its tests run in the same build as every other.
     cargo(&[
         "test",
-        "-p",
-        "ic_render",
-        "--features",
-        "gpu",
+        "--workspace",
         "--all-targets",
+        "--features",
+        TEST_FEATURES,
     ])?;
+    cargo(&["test", "--workspace", "--doc", "--features", TEST_FEATURES])?;
     python_tests()?;
     // The small accuracy/speed bench (about 11 min on 2 cores: our methods on the small case
     // sets, then the clutter and IC-BIN scenes), so `cargo xtask bench` and
@@ -347,6 +355,8 @@ fn python_tests() -> Result<()> {
             "build",
             "--profile",
             "dev",
+            "--features",
+            TEST_FEATURES,
             "--manifest-path",
             "python/Cargo.toml",
             "--interpreter",
@@ -542,8 +552,9 @@ mod tests {
         features
     }
 
-    /// `cargo xtask test` builds xtask, then every test of the workspace, then the Python wheel
-    /// and (for the Python tests and the quick bench) the `incontext` binary:
+    /// `cargo xtask test` builds xtask, then every test of the workspace (with `TEST_FEATURES`),
+    /// then the Python wheel and (for the Python tests and the quick bench) the `incontext`
+    /// binary, the last two with `TEST_FEATURES` too:
     /// a dependency the later builds resolve with other features is compiled again with
     /// everything above it (≈ 6 minutes of CI on 2 cores when libc's features differed). The
     /// feature-unification entries of xtask's and the Python module's `Cargo.toml` keep the
@@ -551,19 +562,31 @@ mod tests {
     /// naming the package.
     #[test]
     fn xtask_and_python_builds_resolve_the_features_of_the_workspace_tests() {
-        let tests = resolved_features(&["--workspace", "--edges", "normal,build,dev"]);
+        let features = ["--features", TEST_FEATURES];
+        let tests = resolved_features(
+            &[
+                &["--workspace", "--edges", "normal,build,dev"][..],
+                &features,
+            ]
+            .concat(),
+        );
         for (build, args) in [
-            ("xtask", &["-p", "xtask", "--edges", "normal,build"][..]),
+            ("xtask", vec!["-p", "xtask", "--edges", "normal,build"]),
             // The bench's and the Python tests' `cargo build --workspace --bin incontext`.
             (
                 "the workspace's binaries",
-                &["--workspace", "--edges", "normal,build"],
+                [&["--workspace", "--edges", "normal,build"][..], &features].concat(),
             ),
             (
                 "the Python wheel",
-                &["-p", "incontext-python", "--edges", "normal,build"],
+                [
+                    &["-p", "incontext-python", "--edges", "normal,build"][..],
+                    &features,
+                ]
+                .concat(),
             ),
         ] {
+            let args = &args[..];
             let this = resolved_features(args);
             assert!(this.len() > 100, "{build}: {} packages", this.len());
             let differ: Vec<String> = this
@@ -581,8 +604,8 @@ mod tests {
                 .collect();
             assert!(
                 differ.is_empty(),
-                "{build} resolves other features than `cargo test --workspace`; add them to its \
-                 Cargo.toml's feature-unification entries:\n{}",
+                "{build} resolves other features than `cargo test --workspace --features \
+                 {TEST_FEATURES}`; add them to its Cargo.toml's feature-unification entries:\n{}",
                 differ.join("\n")
             );
         }

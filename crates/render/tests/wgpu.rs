@@ -1,6 +1,7 @@
 //! The wgpu backend (feature `gpu`) against analytic geometry and against the CPU reference.
 //! Every test fails when no adapter exists (install `mesa-vulkan-drivers libvulkan1` to run
-//! them without a GPU): `cargo test -p ic_render --features gpu`, which `cargo xtask test` runs.
+//! them without a GPU): `cargo test -p ic_render --features gpu`; `cargo xtask test` runs them in
+//! its one workspace test build (`--features ic_render/gpu`).
 #![cfg(feature = "gpu")]
 
 mod common;

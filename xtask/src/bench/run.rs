@@ -129,12 +129,19 @@ pub fn probe_cli(root: &Path, given: Option<&Path>, release: bool) -> Cli {
                     ],
                 )
             } else {
-                // `--workspace`: the features the whole workspace resolves, those of `cargo
-                // test --workspace`, whose build of this binary is then reused (`-p incontext`
-                // alone resolves fewer and rebuilds candle and the engine).
+                // `--workspace` and `TEST_FEATURES`: the features `cargo xtask test` resolves,
+                // whose build of this binary is then reused (`-p incontext` alone resolves
+                // fewer and rebuilds candle and the engine).
                 (
                     root.join("target/debug/incontext"),
-                    &["build", "--workspace", "--bin", "incontext"],
+                    &[
+                        "build",
+                        "--workspace",
+                        "--features",
+                        crate::TEST_FEATURES,
+                        "--bin",
+                        "incontext",
+                    ],
                 )
             };
             if let Err(e) = crate::cargo(args) {
