@@ -12,7 +12,8 @@
 //!   `<scene>/mask/{im_id:06}_{gt_idx:06}.png` (full silhouette),
 //!   `<scene>/mask_visib/{im_id:06}_{gt_idx:06}.png`;
 //! - `<root>/models/obj_{obj_id:06}.ply` in mm and `models_info.json` (`diameter`, `min_*`,
-//!   `size_*`), plus `ic_object_ids.json` mapping BOP ids to our corpus ids;
+//!   `size_*`), plus `ic_object_ids.json` mapping BOP ids to our corpus ids; the reader takes
+//!   T-LESS's `models_cad/` when there is no `models/` ([`models_folder`]);
 //! - `<root>/test_targets_bop19.json`: what to find in each image (`scene_id`, `im_id`,
 //!   `obj_id`, `inst_count`); read when present, else every annotated object is a target.
 //!
@@ -613,19 +614,35 @@ fn read_targets(
     Ok(out)
 }
 
+/// The folders a BOP dataset's models are read from, in order of preference: `models/` (every
+/// BOP dataset but T-LESS), then `models_cad/` (T-LESS, whose download holds `models_cad/`,
+/// `models_reconst/` and `models_eval/`: the CAD models are the objects as made, what BOP
+/// renders T-LESS's training images from).
+pub const MODELS_FOLDERS: [&str; 2] = ["models", "models_cad"];
+
+/// The models folder of the BOP dataset at `root` (the first of [`MODELS_FOLDERS`] that is a
+/// folder), or `None`.
+pub fn models_folder(root: &Path) -> Option<PathBuf> {
+    MODELS_FOLDERS
+        .iter()
+        .map(|name| root.join(name))
+        .find(|p| p.is_dir())
+}
+
 impl BopDataset {
-    /// Opens `<root>/<split>` with the models of `<root>/models`.
+    /// Opens `<root>/<split>` with the models of `<root>/models` (T-LESS: `models_cad`; see
+    /// [`models_folder`]).
     pub fn open(
         root: impl AsRef<Path>,
         split: &str,
         options: CorpusOptions,
     ) -> Result<Self, DataError> {
         let root = root.as_ref().to_path_buf();
-        let corpus = Arc::new(Corpus::bop_models(
-            root.join("models"),
-            Split::Test,
-            options,
-        )?);
+        let models = models_folder(&root).ok_or_else(|| DataError::Layout {
+            folder: root.clone(),
+            message: format!("no models folder (one of {})", MODELS_FOLDERS.join(", ")),
+        })?;
+        let corpus = Arc::new(Corpus::bop_models(models, Split::Test, options)?);
         let obj_index = corpus
             .entries()
             .iter()

@@ -41,8 +41,9 @@ use crate::pipeline::{Object, Pipeline, PipelineError, PipelineOptions, Registra
 #[derive(clap::Args, Debug, Clone, serde::Serialize)]
 #[command(group(clap::ArgGroup::new("input").required(true).args(["dataset", "cases", "frames"])))]
 pub struct EvalArgs {
-    /// A BOP dataset (models/ and SPLIT/) or a `cargo xtask gen-data` folder (noback/,
-    /// room/).
+    /// A BOP dataset (models/ — T-LESS's models_cad/ when there is no models/ — and SPLIT/, e.g.
+    /// `--split test_primesense` for T-LESS) or a `cargo xtask gen-data` folder (noback/,
+    /// room/, clutter/).
     #[arg(long)]
     pub dataset: Option<PathBuf>,
     /// A folder of registration cases written by `cargo xtask export-cases`.
@@ -643,7 +644,7 @@ fn datasets(dir: &Path, split: &str) -> Result<Vec<(String, PathBuf)>> {
     if !dir.is_dir() {
         return Err(CliError::input(format!("{}: not a folder", dir.display())));
     }
-    if dir.join("models").is_dir() {
+    if ic_data::bop::models_folder(dir).is_some() {
         let name = dir
             .file_name()
             .map(|n| n.to_string_lossy().replace('_', "-"))
@@ -653,11 +654,12 @@ fn datasets(dir: &Path, split: &str) -> Result<Vec<(String, PathBuf)>> {
     let subsets: Vec<(String, PathBuf)> = ["noback", "room", "clutter"]
         .iter()
         .map(|n| (n.to_string(), dir.join(n)))
-        .filter(|(_, p)| p.join("models").is_dir() && p.join(split).is_dir())
+        .filter(|(_, p)| ic_data::bop::models_folder(p).is_some() && p.join(split).is_dir())
         .collect();
     if subsets.is_empty() {
         return Err(CliError::input(format!(
-            "{}: neither a BOP dataset (models/ and {split}/) nor a gen-data folder (noback/, room/)",
+            "{}: neither a BOP dataset (models/, or T-LESS's models_cad/, and {split}/) nor a \
+             gen-data folder (noback/, room/)",
             dir.display()
         )));
     }
