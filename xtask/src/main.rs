@@ -255,8 +255,8 @@ fn cargo(args: &[&str]) -> Result<()> {
 /// Python tests and the quick bench) resolves this one feature set, so none compiles a
 /// dependency again with other features (a separate `cargo test -p ic_render --features gpu`
 /// resolved its own graph and recompiled ≈ 95 packages, 4–6.5 minutes of CI on 2 cores).
-/// Pinned by the test `xtask_and_python_builds_resolve_the_features_of_the_workspace_tests`;
-/// `python/tests/conftest.py` names the same feature.
+/// Pinned by the test `xtask_and_python_builds_resolve_the_features_of_the_workspace_tests`,
+/// which also checks that `python/tests/conftest.py` names the same features.
 pub(crate) const TEST_FEATURES: &str = "ic_render/gpu";
 
 fn test() -> Result<()> {
@@ -562,6 +562,14 @@ mod tests {
     /// naming the package.
     #[test]
     fn xtask_and_python_builds_resolve_the_features_of_the_workspace_tests() {
+        // The Python tests' binary names the same features (or pytest would rebuild it).
+        let conftest = workspace_root().join("python/tests/conftest.py");
+        let text = std::fs::read_to_string(&conftest).expect("reading python/tests/conftest.py");
+        assert!(
+            text.contains(&format!("TEST_FEATURES = \"{TEST_FEATURES}\"")),
+            "{}: TEST_FEATURES must be {TEST_FEATURES:?}, as xtask's",
+            conftest.display()
+        );
         let features = ["--features", TEST_FEATURES];
         let tests = resolved_features(
             &[
