@@ -632,43 +632,12 @@ fn eval_writes_peer_lines_for_cases_and_tables_for_a_bop_dataset() {
 #[test]
 fn eval_reads_the_tless_layout_models_cad_and_a_primesense_split() {
     // T-LESS ships models_cad/ (no models/) and its test images in test_primesense/: the same
-    // two views written in that layout register as in the plain one, and the BOP results file
+    // two views moved into that layout register as in the plain one, and the BOP results file
     // is named as BOP's toolkit parses it (`<method>_<dataset>-<split>-<split type>.csv`).
-    use ic_data::bop::{BopWriteOptions, BopWriter};
-    use ic_data::{Corpus, CorpusOptions, ObjectSampleConfig, ObjectSampleGenerator, Split};
     let dir = tempfile::tempdir().unwrap();
-    let corpus = Arc::new(Corpus::procedural(2, Split::Test, 1, CorpusOptions::default()).unwrap());
-    let cfg = ObjectSampleConfig {
-        keep_images: true,
-        ..ObjectSampleConfig::default()
-    };
-    let g = ObjectSampleGenerator::new(corpus.clone(), cfg, 1).unwrap();
-    let plain = dir.path().join("plain");
+    write_cases(dir.path());
+    let plain = dir.path().join("bop");
     let tless = dir.path().join("tless");
-    let mut writers = [
-        BopWriter::create(&plain, BopWriteOptions::default()).unwrap(),
-        BopWriter::create(
-            &tless,
-            BopWriteOptions {
-                split: "test_primesense".into(),
-                ..BopWriteOptions::default()
-            },
-        )
-        .unwrap(),
-    ];
-    for i in 0..2 {
-        let sample = g.sample(i).unwrap();
-        let obj = corpus
-            .object(corpus.position(&sample.object_id).unwrap())
-            .unwrap();
-        for w in &mut writers {
-            w.add(&sample.bop_frame(&obj).unwrap()).unwrap();
-        }
-    }
-    for w in writers {
-        w.finish().unwrap();
-    }
-    std::fs::rename(tless.join("models"), tless.join("models_cad")).unwrap();
     let rows = |root: &Path, split: &str, csv: &str| -> Vec<Vec<String>> {
         let out = dir.path().join(format!("out-{split}"));
         check(
@@ -694,8 +663,11 @@ fn eval_reads_the_tless_layout_models_cad_and_a_primesense_split() {
             .map(|l| l.split(',').take(6).map(str::to_owned).collect())
             .collect()
     };
-    let want = rows(&plain, "test", "ours-softmax-icp_plain-test.csv");
+    let want = rows(&plain, "test", "ours-softmax-icp_bop-test.csv");
     assert_eq!(want.len(), 3, "{want:?}");
+    std::fs::rename(&plain, &tless).unwrap();
+    std::fs::rename(tless.join("models"), tless.join("models_cad")).unwrap();
+    std::fs::rename(tless.join("test"), tless.join("test_primesense")).unwrap();
     let got = rows(
         &tless,
         "test_primesense",
