@@ -690,9 +690,11 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
         !args.gt_mask,
         // BOP scores the best `inst_count` estimates of a target whatever their confidence
         // (it only ranks them): several instances come from every one the `--all` search
-        // registers, `uncertain` included, not only the `ok` ones `register --all` returns.
+        // registers, `uncertain` included (whether or not its whole view is consistent), not
+        // only the `ok` ones `register --all` returns.
         PipelineOptions {
             all_min_confidence: Some(0.0),
+            all_whole_view: false,
             ..args.pipeline_options()
         },
     )?;
@@ -1065,7 +1067,7 @@ fn candidate_line(
         "confidence": r.confidence, "verdict": r.verdict, "verification": r.verification,
         "rival_score": r.rival_score, "evidence": r.evidence, "instance": r.instance,
         "segmentation": r.segmentation, "object_voxels": r.object_voxels,
-        "verified": verified,
+        "verified": verified, "whole_view": r.whole_view,
     })
     .to_string())
 }
@@ -1158,7 +1160,7 @@ fn run_frames(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Res
         Ok(json!({
             "pose": r.pose, "confidence": r.confidence, "verdict": r.verdict,
             "verification": r.verification, "instance": r.instance,
-            "agreement": a, "agrees": pass,
+            "agreement": a, "agrees": pass, "whole_view": r.whole_view,
         }))
     };
     let mut lines = Vec::new();

@@ -98,19 +98,12 @@ pub fn depth_agreement(
             }
         }
     }
-    let frac = |n: usize| {
-        if visible > 0 {
-            n as f64 / visible as f64
-        } else {
-            0.0
-        }
-    };
     Ok(DepthAgreement {
         model_pixels: model,
         visible_pixels: visible,
-        agreement: frac(agree),
-        in_front: frac(front),
-        missing: frac(missing),
+        agreement: crate::verify::share(agree, visible),
+        in_front: crate::verify::share(front, visible),
+        missing: crate::verify::share(missing, visible),
     })
 }
 

@@ -519,11 +519,17 @@ pub struct PipelineOptions {
     /// (`docs/decisions.md`, "How many instances `register` tries").
     pub instance_tries: usize,
     /// `register --all` ([`Pipeline::register_depth_all`]) also returns `uncertain` instances
-    /// whose confidence reaches this (`None`: only `ok` ones). The confidence of a
+    /// whose confidence reaches this and whose whole projection is consistent with the depth
+    /// map ([`crate::verify::WholeView::consistent`]; `None`: only `ok` ones). The confidence of a
     /// network-segmented instance is calibrated on clutter ([`clutter_calibration`]), so a
     /// lower bar trades the share of right poses among those returned for more of the
     /// instances.
     pub all_min_confidence: Option<f64>,
+    /// Whether `register --all` keeps an `uncertain` instance only when its whole projection
+    /// is consistent with the depth map (default true). `incontext eval --dataset` turns it
+    /// off: BOP scores the best estimates of a target of several instances whatever their
+    /// confidence, and a doubtful estimate there costs nothing.
+    pub all_whole_view: bool,
 }
 
 impl Default for PipelineOptions {
@@ -549,6 +555,7 @@ impl Default for PipelineOptions {
             pass_top: 0,
             instance_tries: 8,
             all_min_confidence: None,
+            all_whole_view: true,
         }
     }
 }
@@ -840,10 +847,51 @@ enum InstanceSearch {
     /// The best [`PipelineOptions::instance_tries`] until one is `ok`; all registered, best
     /// first.
     FirstOk,
-    /// Every plausible one; the `ok` ones (or the best `uncertain` one), one per object.
+    /// Every plausible one; the `ok` ones (or the best `uncertain` one), one per object
+    /// ([`all_ok_choice`]).
     AllOk,
     /// The best `limit` plausible ones (0 = all), every registration, best first, unfiltered.
     Every { limit: usize },
+}
+
+/// What [`all_ok_choice`] reads of one registration of the `--all` search.
+#[derive(Clone, Copy, Debug)]
+struct AllEntry {
+    verdict: Verdict,
+    confidence: f64,
+    /// Its whole projection explains the depth map ([`crate::verify::WholeView::consistent`];
+    /// true when it was not measured).
+    consistent: bool,
+}
+
+/// Which registrations of the `--all` search (best first) it returns, before poses of the
+/// same object are merged: every `ok` one, and every `uncertain` one whose confidence reaches
+/// `min_confidence` and whose whole projection is consistent with the depth map; when there
+/// is none, the first `uncertain` one that is consistent, else the first that is not
+/// `not_found` (a bin of parts wants confident picks; an `uncertain` pose that does not
+/// explain the depth where its model would be seen is not one, while an `ok` one is kept:
+/// on synthetic clutter the `ok` poses the whole view doubts were right, slightly off or over
+/// the sensor's holes; `docs/decisions.md`).
+fn all_ok_choice(entries: &[AllEntry], min_confidence: Option<f64>) -> Vec<usize> {
+    let wanted = |e: &AllEntry| {
+        e.verdict == Verdict::Ok
+            || (e.verdict == Verdict::Uncertain
+                && e.consistent
+                && min_confidence.is_some_and(|m| e.confidence >= m))
+    };
+    let chosen: Vec<usize> = (0..entries.len())
+        .filter(|&i| wanted(&entries[i]))
+        .collect();
+    if !chosen.is_empty() {
+        return chosen;
+    }
+    let found = |e: &&AllEntry| e.verdict != Verdict::NotFound;
+    entries
+        .iter()
+        .position(|e| found(&e) && e.consistent)
+        .or_else(|| entries.iter().position(|e| found(&e)))
+        .into_iter()
+        .collect()
 }
 
 /// Seconds spent in each stage of one registration.
@@ -926,6 +974,9 @@ pub struct Registration {
     pub inlier_count: usize,
     pub assignment_confidence: f32,
     pub icp: Option<IcpSummary>,
+    /// How the model's whole projection at the pose agrees with the depth map
+    /// ([`crate::verify::whole_view`]), for the instances of `register --all`'s search.
+    pub whole_view: Option<crate::verify::WholeView>,
     pub seconds: StageSeconds,
     /// The observed object voxels (camera frame, normalised units).
     #[serde(skip)]
@@ -1465,10 +1516,12 @@ impl Pipeline {
     /// Every instance of the object in `depth` (normalised units, as
     /// [`Pipeline::register_depth_normalised`]): each instance the segmentation network finds
     /// whose size fits the model is registered, and those whose verdict is `ok` (or whose
-    /// confidence reaches [`PipelineOptions::all_min_confidence`]) are returned, best first
-    /// (verdict, confidence, render-and-compare score); when there is none, the best
-    /// `uncertain` one alone. Two registrations of one object (ADD-S between their poses below
-    /// 0.1 of the diameter) keep the better. An empty list when none is found.
+    /// confidence reaches [`PipelineOptions::all_min_confidence`] and whose whole projection
+    /// is consistent with the depth map, [`Registration::whole_view`]) are returned, best
+    /// first (verdict, confidence, render-and-compare score); when there is none, the best
+    /// consistent `uncertain` one alone (else the best one). Two registrations of one object
+    /// (ADD-S between their poses below 0.1 of the diameter) keep the better. An empty list
+    /// when none is found.
     pub fn register_depth_all_normalised(
         &self,
         object: &Object,
@@ -1817,6 +1870,9 @@ impl Pipeline {
                         r.calibration = CalibrationUsed::Segmentation;
                     }
                     r.instance = Some(choice);
+                    if search != InstanceSearch::FirstOk {
+                        r.whole_view = self.whole_view(object, depth_n, intrinsics, &r);
+                    }
                     let stop = search == InstanceSearch::FirstOk && r.verdict == Verdict::Ok;
                     done.push(r);
                     Ok(!stop)
@@ -1965,24 +2021,21 @@ impl Pipeline {
                 .then(kb.2.total_cmp(&ka.2))
         });
         if search == InstanceSearch::AllOk {
-            // Every `ok` instance (and, with `all_min_confidence`, every `uncertain` one that
-            // reaches it); when there is none, the best `uncertain` one alone (a bin of parts
-            // wants confident picks, `docs/decisions.md`).
-            let wanted = |r: &Registration| {
-                r.verdict == Verdict::Ok
-                    || (r.verdict == Verdict::Uncertain
-                        && self
-                            .options
-                            .all_min_confidence
-                            .is_some_and(|m| r.confidence >= m))
-            };
-            let any_wanted = done.iter().any(wanted);
+            // Every `ok` instance (and, with `all_min_confidence`, every consistent `uncertain`
+            // one that reaches it), one per object: `all_ok_choice`.
+            let entries: Vec<AllEntry> = done
+                .iter()
+                .map(|r| AllEntry {
+                    verdict: r.verdict,
+                    confidence: r.confidence,
+                    consistent: !self.options.all_whole_view
+                        || r.whole_view.is_none_or(|w| w.consistent()),
+                })
+                .collect();
+            let chosen = all_ok_choice(&entries, self.options.all_min_confidence);
             let mut kept: Vec<Registration> = Vec::new();
-            for r in done {
-                if r.verdict == Verdict::NotFound
-                    || (any_wanted && !wanted(&r))
-                    || (!any_wanted && !kept.is_empty())
-                {
+            for (i, r) in done.into_iter().enumerate() {
+                if !chosen.contains(&i) {
                     continue;
                 }
                 let same = kept.iter().any(|k| {
@@ -2003,6 +2056,33 @@ impl Pipeline {
             r.seconds.total = clock.elapsed().as_secs_f64();
         }
         Ok(done)
+    }
+
+    /// [`crate::verify::whole_view`] of a registration from a depth map (normalised units),
+    /// the tolerance floored by the roughness of its mask's pixels; `None` without a mask.
+    fn whole_view(
+        &self,
+        object: &Object,
+        depth_n: &DepthImage,
+        intrinsics: &Intrinsics,
+        r: &Registration,
+    ) -> Option<crate::verify::WholeView> {
+        let observation =
+            crate::verify::Observation::from_depth(depth_n, intrinsics, r.mask.as_ref()?)?;
+        let shape = match &object.mesh {
+            Some(mesh) => crate::verify::ModelShape::Mesh(mesh.clone()),
+            None => crate::verify::ModelShape::points(
+                object.points.clone(),
+                0.5 * self.options.voxel_size,
+            ),
+        };
+        Some(crate::verify::whole_view(
+            &shape,
+            &r.pose_normalised,
+            depth_n,
+            intrinsics,
+            observation.roughness,
+        ))
     }
 
     /// Registers `object` on the pixels of `mask` in `depth_n`.
@@ -2175,6 +2255,7 @@ impl Pipeline {
             inlier_count: best.inlier_count,
             assignment_confidence: best.assignment_confidence,
             icp: best.icp,
+            whole_view: None,
             seconds,
             observed: voxels,
             mask: None,
@@ -2832,6 +2913,39 @@ mod tests {
             .map(|c| c.pixels)
             .collect();
         assert_eq!(tried, [5000]);
+    }
+
+    #[test]
+    fn all_returns_ok_poses_and_consistent_uncertain_ones_and_falls_back_to_the_best_consistent_one()
+     {
+        let e = |verdict: Verdict, confidence: f64, consistent: bool| AllEntry {
+            verdict,
+            confidence,
+            consistent,
+        };
+        use Verdict::{NotFound, Ok as Good, Uncertain};
+        let v = [
+            e(Good, 0.95, true),
+            e(Good, 0.93, false), // `ok`: kept though its whole view disagrees
+            e(Uncertain, 0.5, true),
+            e(Uncertain, 0.45, false),
+            e(Uncertain, 0.2, true),
+            e(NotFound, 0.0, true),
+        ];
+        assert_eq!(all_ok_choice(&v, None), [0, 1]);
+        assert_eq!(all_ok_choice(&v, Some(0.3)), [0, 1, 2]);
+        assert_eq!(all_ok_choice(&v, Some(0.0)), [0, 1, 2, 4]);
+        // Nothing wanted: the best consistent pose, else the best found.
+        let w = [
+            e(Uncertain, 0.6, false),
+            e(Uncertain, 0.3, true),
+            e(NotFound, 0.0, true),
+        ];
+        assert_eq!(all_ok_choice(&w, None), [1]);
+        assert_eq!(all_ok_choice(&w, Some(0.9)), [1]);
+        let x = [e(NotFound, 0.0, true), e(Uncertain, 0.4, false)];
+        assert_eq!(all_ok_choice(&x, None), [1]);
+        assert!(all_ok_choice(&[e(NotFound, 0.0, true)], Some(0.0)).is_empty());
     }
 
     #[test]

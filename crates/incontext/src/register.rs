@@ -74,8 +74,9 @@ pub struct RegisterArgs {
     #[arg(long)]
     pub all: bool,
     /// With --all: also return `uncertain` instances whose confidence (the calibrated
-    /// probability that the pose is right) reaches this, in [0, 1]. Default: only `ok` ones
-    /// (confidence ≥ 0.9), or the best `uncertain` one when none is `ok`.
+    /// probability that the pose is right) reaches this, in [0, 1], and whose model rendered
+    /// at the pose explains the depth map where it would be seen (`whole_view`). Default:
+    /// only `ok` ones (confidence ≥ 0.9), or the best such `uncertain` one when none is `ok`.
     #[arg(long, requires = "all", value_parser = parse_probability)]
     pub min_confidence: Option<f64>,
 }
@@ -399,6 +400,7 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
             "segmentation": r.segmentation,
             "instance": r.instance,
             "verification": r.verification,
+            "whole_view": r.whole_view,
         })
     };
     let instances: Option<Vec<Value>> = args.all.then(|| {

@@ -432,6 +432,180 @@ impl Score {
     }
 }
 
+/// A pose's whole projection against the depth map: [`WholeView::consistent`] when at least
+/// this fraction of its visible rendered pixels agree with the observed depth …
+pub const WHOLE_AGREEMENT: f64 = 0.8;
+/// … less than this fraction lies in front of the observed surface …
+pub const WHOLE_IN_FRONT: f64 = 0.05;
+/// … and at least this many rendered pixels are visible.
+pub const WHOLE_MIN_VISIBLE: usize = 50;
+
+/// How the model's whole projection at a pose agrees with the depth map, at the depth map's
+/// own resolution. The verification ([`Observation::score`]) compares the model with the
+/// observed depth inside a reduced crop around the instance mask and leaves out pixels without
+/// a return; a pose fitted to one instance may still reach past that crop, or over pixels
+/// where the sensor returned nothing, where a real surface would have returned a depth. This
+/// counts every pixel the model covers.
+///
+/// A rendered pixel is *hidden* when the observed surface lies in front of it (by more than
+/// the tolerance) at its pixel and all 8 neighbours — a nearer object occludes it; the other
+/// rendered pixels are *visible*. Of those, it *agrees* when the observed depth of its pixel
+/// or a neighbour is within [`depth_tolerance`], is *in front* when it lies in front of all of
+/// them (free space the sensor saw through), and is *missing* when its pixel has no return.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct WholeView {
+    /// Pixels of the depth map the model covers.
+    pub rendered_pixels: usize,
+    /// Of those, the ones not hidden.
+    pub visible_pixels: usize,
+    /// Fraction of the visible pixels that agree.
+    pub agreement: f64,
+    /// Fraction of the visible pixels in front of the observed surface.
+    pub in_front: f64,
+    /// Fraction of the visible pixels without an observed return.
+    pub missing: f64,
+}
+
+impl WholeView {
+    /// Whether the pose explains the depth where its model would be seen: at least
+    /// [`WHOLE_AGREEMENT`] of [`WHOLE_MIN_VISIBLE`] or more visible pixels agree and less than
+    /// [`WHOLE_IN_FRONT`] lie in front.
+    pub fn consistent(&self) -> bool {
+        self.visible_pixels >= WHOLE_MIN_VISIBLE
+            && self.agreement >= WHOLE_AGREEMENT
+            && self.in_front < WHOLE_IN_FRONT
+    }
+}
+
+/// [`WholeView`] of `model` at `pose` (model → camera, normalised units) against `depth`
+/// (camera-frame z, normalised units, 0 = no return) seen through `k`; `roughness` as
+/// [`Observation::roughness`] (the tolerance is never below three times it). The model is
+/// rendered only over the box its projection covers. All zeros when no part of it projects
+/// into the image in front of the camera.
+pub fn whole_view(
+    model: &ModelShape,
+    pose: &Pose,
+    depth: &DepthImage,
+    k: &Intrinsics,
+    roughness: f32,
+) -> WholeView {
+    let points: &[Vec3] = match model {
+        ModelShape::Mesh(mesh) => &mesh.vertices,
+        ModelShape::Points { points, .. } => points,
+    };
+    let slack = match model {
+        ModelShape::Mesh(_) => 0.0,
+        ModelShape::Points { radius, .. } => *radius,
+    };
+    // The projection's box (a splat's radius and a pixel of margin).
+    let (mut u0, mut v0, mut u1, mut v1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    for p in points {
+        let c = pose.apply_f32(*p);
+        if c.z <= 1e-3 {
+            // Part of the model at or behind the camera: its projection is unbounded.
+            (u0, v0, u1, v1) = (0.0, 0.0, k.width as f64, k.height as f64);
+            break;
+        }
+        let (u, v) = (
+            k.fx * (c.x / c.z) as f64 + k.cx,
+            k.fy * (c.y / c.z) as f64 + k.cy,
+        );
+        let r = k.fx.max(k.fy) * (slack / c.z) as f64;
+        u0 = u0.min(u - r);
+        v0 = v0.min(v - r);
+        u1 = u1.max(u + r);
+        v1 = v1.max(v + r);
+    }
+    if !(u0.is_finite() && v0.is_finite() && u1.is_finite() && v1.is_finite()) {
+        return WholeView::default();
+    }
+    let (w, h) = (depth.width as i64, depth.height as i64);
+    let ua = ((u0.floor() as i64) - 1).clamp(0, w);
+    let va = ((v0.floor() as i64) - 1).clamp(0, h);
+    let ub = ((u1.ceil() as i64) + 2).clamp(0, w);
+    let vb = ((v1.ceil() as i64) + 2).clamp(0, h);
+    if ua >= ub || va >= vb {
+        return WholeView::default();
+    }
+    let crop = Intrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx - ua as f64,
+        cy: k.cy - va as f64,
+        width: (ub - ua) as u32,
+        height: (vb - va) as u32,
+    };
+    let rendered = match model {
+        ModelShape::Mesh(mesh) => {
+            let scene = Scene::single(mesh.clone(), Pose::IDENTITY, 1);
+            let mut camera = Camera::new(crop, *pose);
+            camera.near = 1e-3;
+            match CpuRenderer::new().render(&scene, &camera) {
+                Ok(r) => r.depth,
+                Err(_) => return WholeView::default(),
+            }
+        }
+        ModelShape::Points { points, radius } => splat(points, pose, &crop, *radius),
+    };
+    let (cw, ch) = (crop.width as usize, crop.height as usize);
+    let (w, h) = (w as usize, h as usize);
+    let observed = |x: usize, y: usize| depth.data[y * w + x];
+    let (mut covered, mut visible, mut agree, mut front, mut missing) = (0, 0, 0, 0, 0);
+    for j in 0..ch {
+        for i in 0..cw {
+            let r = rendered.data[j * cw + i];
+            if r <= 0.0 {
+                continue;
+            }
+            covered += 1;
+            let (u, v) = (ua as usize + i, va as usize + j);
+            let o = observed(u, v);
+            if o <= 0.0 {
+                visible += 1;
+                missing += 1;
+                continue;
+            }
+            let (mut near, mut front_all, mut hidden_all) = (false, true, true);
+            for vv in v.saturating_sub(NEIGHBOURHOOD)..=(v + NEIGHBOURHOOD).min(h - 1) {
+                for uu in u.saturating_sub(NEIGHBOURHOOD)..=(u + NEIGHBOURHOOD).min(w - 1) {
+                    let on = observed(uu, vv);
+                    if on <= 0.0 {
+                        continue;
+                    }
+                    let tol = depth_tolerance(on, roughness) + slack;
+                    near |= (r - on).abs() <= tol;
+                    front_all &= r < on - tol;
+                    hidden_all &= r > on + tol;
+                }
+            }
+            if near {
+                visible += 1;
+                agree += 1;
+            } else if front_all {
+                visible += 1;
+                front += 1;
+            } else if !hidden_all {
+                // Neither near, nor in front of every neighbour, nor behind every one: a
+                // depth step runs through the neighbourhood; it counts as visible and not
+                // agreeing.
+                visible += 1;
+            }
+        }
+    }
+    WholeView {
+        rendered_pixels: covered,
+        visible_pixels: visible,
+        agreement: share(agree, visible),
+        in_front: share(front, visible),
+        missing: share(missing, visible),
+    }
+}
+
+/// `n / of`, 0 when `of` is 0.
+pub(crate) fn share(n: usize, of: usize) -> f64 {
+    if of > 0 { n as f64 / of as f64 } else { 0.0 }
+}
+
 /// Points (model frame) moved by `pose` and z-buffered into an image of `k`, each filling the
 /// square of half-side `radius` (normalised units) around it, seen face-on.
 fn splat(points: &[Vec3], pose: &Pose, k: &Intrinsics, radius: f32) -> DepthImage {
@@ -554,6 +728,71 @@ mod tests {
             DVec3::ZERO,
         ));
         assert!(obs.score(&shape, &tipped).score < base.score - 0.2);
+    }
+
+    #[test]
+    fn the_whole_view_counts_free_space_and_missing_returns_that_the_crop_score_leaves_out() {
+        let (mut depth, mask, k, mesh, truth) = scene(5);
+        // A wall behind the object fills the background: free space in front of it.
+        let far = depth.data.iter().copied().fold(0.0f32, f32::max) + 2.0;
+        for z in depth.data.iter_mut().filter(|z| **z <= 0.0) {
+            *z = far;
+        }
+        let shape = ModelShape::Mesh(mesh.clone());
+        let right = whole_view(&shape, &truth, &depth, &k, 0.0);
+        assert!(right.consistent(), "{right:?}");
+        assert!(right.agreement > 0.95 && right.in_front < 0.01, "{right:?}");
+        assert_eq!(right.missing, 0.0);
+        assert!(right.visible_pixels * 10 >= mask.data.iter().filter(|&&m| m).count() * 9);
+        // Splatted points see the same.
+        let pts = ic_geometry::sampling::sample_surface_uniform(&mesh, 4096, 5)
+            .unwrap()
+            .points;
+        let points = whole_view(&ModelShape::points(pts, 0.01), &truth, &depth, &k, 0.0);
+        assert!(points.consistent(), "{points:?}");
+        // Moved 0.6 units towards the camera: in front of what the sensor saw.
+        let near = Pose::from_translation(DVec3::new(0.0, 0.0, -0.6)).compose(&truth);
+        let front = whole_view(&shape, &near, &depth, &k, 0.0);
+        assert!(front.in_front > 0.5 && !front.consistent(), "{front:?}");
+        // No return on the right half of the object: the crop score, which leaves such
+        // pixels out, still trusts the pose; the whole view does not.
+        let w = depth.width as usize;
+        let mut holed = depth.clone();
+        let mut kept = mask.clone();
+        for i in 0..holed.data.len() {
+            if mask.data[i] && i % w >= w / 2 {
+                holed.data[i] = 0.0;
+                kept.data[i] = false;
+            }
+        }
+        let crop = Observation::from_depth(&holed, &k, &kept)
+            .unwrap()
+            .score(&shape, &truth);
+        assert!(crop.agreement > 0.9, "{crop:?}");
+        let missing = whole_view(&shape, &truth, &holed, &k, 0.0);
+        assert!(
+            missing.missing > 0.25 && missing.agreement < 0.75 && !missing.consistent(),
+            "{missing:?}"
+        );
+        // Behind a surface nearer than the object everywhere: hidden, nothing visible.
+        let wall = Image::filled(depth.width, depth.height, 1.0f32);
+        let hidden = whole_view(&shape, &truth, &wall, &k, 0.0);
+        assert!(
+            hidden.rendered_pixels > 0 && hidden.visible_pixels == 0,
+            "{hidden:?}"
+        );
+        assert!(!hidden.consistent());
+        // Entirely outside the image, or behind the camera: nothing rendered.
+        let away = Pose::from_translation(DVec3::new(50.0, 0.0, 0.0)).compose(&truth);
+        assert_eq!(
+            whole_view(&shape, &away, &depth, &k, 0.0),
+            WholeView::default()
+        );
+        let behind = Pose::from_translation(DVec3::new(0.0, 0.0, -20.0)).compose(&truth);
+        assert_eq!(
+            whole_view(&shape, &behind, &depth, &k, 0.0).visible_pixels,
+            0
+        );
     }
 
     #[test]

@@ -150,6 +150,22 @@ fn register_all_returns_each_instance_of_the_model_best_first() {
         .map(|i| i["confidence"].as_f64().unwrap())
         .collect();
     assert!(confidences.iter().all(|&c| c >= 0.2), "{confidences:?}");
+    // Each instance reports how its model, rendered over the whole image, explains the depth
+    // map; an `uncertain` one is returned only when it does.
+    for i in instances {
+        let w = &i["whole_view"];
+        let f = |k: &str| {
+            w[k].as_f64()
+                .unwrap_or_else(|| panic!("whole_view.{k}: {i:#}"))
+        };
+        assert!(f("rendered_pixels") >= f("visible_pixels"), "{i:#}");
+        if i["verdict"] == "uncertain" {
+            assert!(
+                f("visible_pixels") >= 50.0 && f("agreement") >= 0.8 && f("in_front") < 0.05,
+                "{i:#}"
+            );
+        }
+    }
     // The network chose the pixels: the clutter calibration gave the confidence.
     assert!(
         instances.iter().all(|i| i["calibration"] == "segmentation"),
