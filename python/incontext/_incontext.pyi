@@ -89,6 +89,9 @@ class Result:
     @property
     def verification(self) -> Optional[Dict[str, float]]:
         """Render-and-compare scores in [0, 1] (score, coverage, agreement, visible_agreement, violation; misfit, the agreeing pixels' mean depth residual in units of their tolerance) as ``details.verification`` of ``incontext register --json``; None when not verified (rotations=1)."""
+    @property
+    def whole_view(self) -> Optional[Dict[str, float]]:
+        """The model rendered at the pose over the whole image against the depth map, as ``details.whole_view`` of ``incontext register --json``: rendered_pixels, visible_pixels (not hidden behind a nearer observed surface), and the shares of the visible ones in agreement, in_front of the observed surface, or missing (no return); None for point inputs."""
     def to_bop(self) -> Dict[str, List[float]]:
         """{"cam_R_m2c": 9 floats row-major, "cam_t_m2c": 3 floats in mm}."""
 

@@ -786,6 +786,7 @@ struct RegistrationResult {
     mask: Option<(u32, u32, Vec<bool>)>,
     object_voxels: usize,
     verification: Option<incontext::verify::Score>,
+    whole_view: Option<incontext::verify::WholeView>,
 }
 
 impl RegistrationResult {
@@ -814,6 +815,7 @@ impl RegistrationResult {
             mask: r.mask.as_ref().map(|m| (m.width, m.height, m.data.clone())),
             object_voxels: r.object_voxels,
             verification: r.verification,
+            whole_view: r.whole_view,
         }
     }
 }
@@ -916,6 +918,25 @@ impl RegistrationResult {
         d.set_item("violation", v.violation)?;
         d.set_item("visible_agreement", v.visible_agreement)?;
         d.set_item("misfit", v.misfit)?;
+        Ok(Some(d))
+    }
+
+    /// The model rendered at the pose over the whole image against the depth map, as
+    /// `details.whole_view` of `incontext register --json`: `rendered_pixels`,
+    /// `visible_pixels` (not hidden behind a nearer observed surface), and the shares of the
+    /// visible ones that `agreement` (agree with the depth), lie `in_front` of the observed
+    /// surface, or are `missing` (no return). None for point inputs.
+    #[getter]
+    fn whole_view<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+        let Some(w) = self.whole_view else {
+            return Ok(None);
+        };
+        let d = PyDict::new(py);
+        d.set_item("rendered_pixels", w.rendered_pixels)?;
+        d.set_item("visible_pixels", w.visible_pixels)?;
+        d.set_item("agreement", w.agreement)?;
+        d.set_item("in_front", w.in_front)?;
+        d.set_item("missing", w.missing)?;
         Ok(Some(d))
     }
 

@@ -41,6 +41,8 @@ def test_the_same_pose_as_the_command_line_bit_for_bit(cli, demo, scene, registr
     assert r.t.tolist() == report["pose"]["t"]  # the demo's mesh is in mm
     assert r.confidence == report["confidence"]
     assert r.verification == report["details"]["verification"]
+    assert r.whole_view == report["details"]["whole_view"]
+    assert r.whole_view["visible_pixels"] > 0
     # With the mask given, the single-object calibration; with the clutter segmentation
     # network (the default), which may also report a piece of the room as an instance, the
     # clutter one is possible. Python and the command line agree either way.

@@ -975,7 +975,8 @@ pub struct Registration {
     pub assignment_confidence: f32,
     pub icp: Option<IcpSummary>,
     /// How the model's whole projection at the pose agrees with the depth map
-    /// ([`crate::verify::whole_view`]), for the instances of `register --all`'s search.
+    /// ([`crate::verify::whole_view`]): for the pose a depth map's registration returns and
+    /// for every instance of `register --all`'s search; `None` for point inputs.
     pub whole_view: Option<crate::verify::WholeView>,
     pub seconds: StageSeconds,
     /// The observed object voxels (camera frame, normalised units).
@@ -1490,7 +1491,7 @@ impl Pipeline {
                 score: None,
                 pixels,
             };
-            return self.register_mask(
+            let mut r = self.register_mask(
                 object,
                 depth_n,
                 intrinsics,
@@ -1500,7 +1501,9 @@ impl Pipeline {
                 self.options.network_passes,
                 seconds,
                 clock,
-            );
+            )?;
+            r.whole_view = self.whole_view(object, depth_n, intrinsics, &r);
+            return Ok(r);
         }
         let mut all = self.register_instances(
             object,
@@ -1510,7 +1513,14 @@ impl Pipeline {
             clock,
             InstanceSearch::FirstOk,
         )?;
-        Ok(all.remove(0))
+        // The returned pose's whole view is reported (it does not change the choice: on
+        // synthetic clutter ranking consistent poses first changed 2 of 59 choices, neither
+        // right; `docs/decisions.md`, "What `register --all` returns").
+        let mut r = all.remove(0);
+        if r.whole_view.is_none() {
+            r.whole_view = self.whole_view(object, depth_n, intrinsics, &r);
+        }
+        Ok(r)
     }
 
     /// Every instance of the object in `depth` (normalised units, as

@@ -431,6 +431,7 @@ pub fn register_files(args: &RegisterArgs, seed: u64) -> Result<RegisterOutcome>
             "assignment_confidence": registration.assignment_confidence,
             "icp": registration.icp,
             "verification": registration.verification,
+            "whole_view": registration.whole_view,
             "rival_score": registration.rival_score,
             "evidence": registration.evidence,
             "hypotheses_made": registration.hypotheses_made,
@@ -516,6 +517,30 @@ pub fn summary_text(report: &Value) -> String {
             .map(|x| format!("{x:.3}"))
             .unwrap_or_else(|| "–".into()),
     ));
+    let w = &d["whole_view"];
+    if let (Some(visible), Some(agreement), Some(front), Some(missing)) = (
+        w["visible_pixels"].as_u64(),
+        w["agreement"].as_f64(),
+        w["in_front"].as_f64(),
+        w["missing"].as_f64(),
+    ) {
+        let consistent = visible as usize >= crate::verify::WHOLE_MIN_VISIBLE
+            && agreement >= crate::verify::WHOLE_AGREEMENT
+            && front < crate::verify::WHOLE_IN_FRONT;
+        s.push_str(&format!(
+            "whole view: {:.0} % of the model's {visible} visible pixels agree with the depth, \
+             {:.0} % lie in front of it, {:.0} % have no return{}\n",
+            100.0 * agreement,
+            100.0 * front,
+            100.0 * missing,
+            if consistent {
+                ""
+            } else {
+                " — the pose does not explain the depth where its model would be seen: check it \
+                 (--overlay)"
+            }
+        ));
+    }
     let t = &report["timings_ms"];
     let f = |k: &str| t[k].as_f64().unwrap_or(f64::NAN);
     s.push_str(&format!(

@@ -45,6 +45,12 @@ fn rotation_hypotheses_find_the_pose_verify_it_and_repeat_exactly() {
     assert_eq!(checked, 2 * (8 + 16), "{a:#}");
     let v = &a["details"]["verification"];
     assert!(v["score"].as_f64().unwrap() > 0.8, "{v}");
+    // The model rendered at the pose over the whole image explains the depth map.
+    let w = &a["details"]["whole_view"];
+    assert!(
+        w["agreement"].as_f64().unwrap() >= 0.8 && w["in_front"].as_f64().unwrap() < 0.05,
+        "{w}"
+    );
     // The confidence is the calibrated probability of being right: `ok` needs at least 0.9.
     let confidence = a["confidence"].as_f64().unwrap();
     assert!((0.9..=1.0).contains(&confidence), "{confidence}");
@@ -70,6 +76,7 @@ fn rotation_hypotheses_find_the_pose_verify_it_and_repeat_exactly() {
     );
     assert_eq!(a["pose"], b["pose"]);
     assert_eq!(a["details"]["verification"], b["details"]["verification"]);
+    assert_eq!(a["details"]["whole_view"], b["details"]["whole_view"]);
     // The hypotheses are refined and scored in parallel: the rival (the best score of the
     // verified poses unlike the winner) and the confidence built on it repeat too.
     assert!(a["details"]["rival_score"].is_f64(), "{a:#}");
