@@ -8,7 +8,8 @@
 //!   `obj_id`;
 //! - `<scene>/scene_gt_info.json`: `bbox_obj`, `bbox_visib` (`[x, y, w, h]`), `px_count_all`,
 //!   `px_count_valid`, `px_count_visib`, `visib_fract`;
-//! - `<scene>/depth/{im_id:06}.png` (16-bit, `stored × depth_scale = mm`),
+//! - `<scene>/depth/{im_id:06}.png` (16-bit, `stored × depth_scale = mm`; reading also takes
+//!   `.tif`, as ITODD stores it),
 //!   `<scene>/mask/{im_id:06}_{gt_idx:06}.png` (full silhouette),
 //!   `<scene>/mask_visib/{im_id:06}_{gt_idx:06}.png`;
 //! - `<root>/models/obj_{obj_id:06}.ply` in mm and `models_info.json` (`diameter`, `min_*`,
@@ -402,6 +403,22 @@ impl BopWriter {
 /// One annotated object of an image (`im_id`, its `gt_index`-th): writes its `mask/` (`all`,
 /// the full silhouette) and `mask_visib/` (`visib`) PNGs into `scene_dir` and returns its
 /// `scene_gt.json` and `scene_gt_info.json` entries, its visible pixels and visible fraction.
+/// The depth map of image `im_id` of a BOP scene folder, in metres: `depth/{im_id:06}.png`, or,
+/// when there is no PNG, `depth/{im_id:06}.tif` (BOP's ITODD; `stored × depth_scale = mm`
+/// either way). Errors name the PNG when neither exists.
+fn read_bop_depth(
+    scene_dir: &Path,
+    im_id: u32,
+    depth_scale: f64,
+) -> Result<DepthImage, ic_render::ImageIoError> {
+    let png = scene_dir.join(format!("depth/{im_id:06}.png"));
+    let tif = scene_dir.join(format!("depth/{im_id:06}.tif"));
+    if !png.exists() && tif.is_file() {
+        return ic_render::io::read_depth_tiff(&tif, depth_scale, None);
+    }
+    ic_render::io::read_depth_png(&png, depth_scale, None)
+}
+
 /// `pose` maps the model into the camera in units of `mm_per_unit` millimetres; `depth` only
 /// says where the sensor returned.
 fn annotate(
@@ -838,8 +855,7 @@ impl BopDataset {
             })?;
         let object = self.corpus.object(index)?;
         let norm = object.normalisation;
-        let depth_path = scene.dir.join(format!("depth/{:06}.png", inst.im_id));
-        let depth_m = ic_render::io::read_depth_png(&depth_path, depth_scale, None)?;
+        let depth_m = read_bop_depth(&scene.dir, inst.im_id, depth_scale)?;
         let (w, h) = (depth_m.width, depth_m.height);
         let k = Intrinsics::new(kk[0], kk[4], kk[2], kk[5], w, h)?;
         let to_units = 1000.0 / norm.scale;

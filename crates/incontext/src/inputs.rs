@@ -314,48 +314,60 @@ pub fn read_camera(
     })
 }
 
-/// The depth file's format, from its extension.
-fn is_exr(path: &Path) -> Result<bool> {
+/// The depth file formats read, by extension.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum DepthFormat {
+    /// 16-bit PNG, `stored × depth_scale = mm` (BOP).
+    Png,
+    /// OpenEXR in metres.
+    Exr,
+    /// One-channel TIFF (16-bit or float), `stored × depth_scale = mm` (BOP's ITODD).
+    Tiff,
+}
+
+fn depth_format(path: &Path) -> Result<DepthFormat> {
     let ext = path
         .extension()
         .map(|e| e.to_string_lossy().to_ascii_lowercase())
         .unwrap_or_default();
     match ext.as_str() {
-        "png" => Ok(false),
-        "exr" => Ok(true),
+        "png" => Ok(DepthFormat::Png),
+        "exr" => Ok(DepthFormat::Exr),
+        "tif" | "tiff" => Ok(DepthFormat::Tiff),
         _ => Err(bad(
             path,
             format!(
-                "unsupported depth format {ext:?}: expected a 16-bit .png (BOP, with the camera's depth_scale) or a .exr in metres"
+                "unsupported depth format {ext:?}: expected a 16-bit .png (BOP, with the camera's depth_scale), a .exr in metres or a one-channel .tif (as the .png)"
             ),
         )),
     }
 }
 
-/// Size of a depth file without decoding all of it (PNG header; EXR is decoded).
 /// Size of a depth file from its header alone (nothing is decoded), within the readers' limits
 /// ([`ic_render::io::MAX_IMAGE_SIDE`], [`ic_render::io::MAX_IMAGE_PIXELS`]).
 pub fn depth_size(path: &Path) -> Result<(u32, u32)> {
-    if is_exr(path)? {
-        return Ok(ic_render::io::exr_size(path)?);
-    }
-    Ok(ic_render::io::png_size(path)?)
+    Ok(match depth_format(path)? {
+        DepthFormat::Png => ic_render::io::png_size(path)?,
+        DepthFormat::Exr => ic_render::io::exr_size(path)?,
+        DepthFormat::Tiff => ic_render::io::tiff_size(path)?,
+    })
 }
 
-/// Reads a depth map in millimetres: a 16-bit PNG (`stored × depth_scale = mm`) or an EXR in
-/// metres. Checks the size against the camera, and that some pixel holds a valid depth.
+/// Reads a depth map in millimetres: a 16-bit PNG or a one-channel TIFF (`stored ×
+/// depth_scale = mm`), or an EXR in metres. Checks the size against the camera, and that some
+/// pixel holds a valid depth.
 pub fn read_depth_mm(path: &Path, camera: &CameraFile) -> Result<DepthImage> {
     let k = &camera.intrinsics;
     let expected = Some((k.width, k.height));
-    let metres = if is_exr(path)? {
-        ic_render::io::read_depth_exr(path, expected)?
-    } else {
-        ic_render::io::read_depth_png(path, camera.depth_scale, expected)?
+    let format = depth_format(path)?;
+    let metres = match format {
+        DepthFormat::Png => ic_render::io::read_depth_png(path, camera.depth_scale, expected)?,
+        DepthFormat::Exr => ic_render::io::read_depth_exr(path, expected)?,
+        DepthFormat::Tiff => ic_render::io::read_depth_tiff(path, camera.depth_scale, expected)?,
     };
-    let hint = if is_exr(path)? {
-        "EXR depth is read in metres"
-    } else {
-        "is the camera's depth_scale right? (stored value × depth_scale = mm)"
+    let hint = match format {
+        DepthFormat::Exr => "EXR depth is read in metres",
+        _ => "is the camera's depth_scale right? (stored value × depth_scale = mm)",
     };
     checked_depth_mm(metres, path, hint)
 }

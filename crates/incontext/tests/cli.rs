@@ -166,6 +166,19 @@ fn missing_or_unreadable_files_are_bad_input() {
     // Files that exist but are not what they claim.
     std::fs::write(sc.path("garbage.png"), b"not a png at all").unwrap();
     check_register(&sc, "--depth", &sc.p("garbage.png"), 2, &["garbage.png"]);
+    std::fs::write(sc.path("garbage.tif"), b"II*\0 not a tiff").unwrap();
+    check_register(&sc, "--depth", &sc.p("garbage.tif"), 2, &["garbage.tif"]);
+    tiff::encoder::TiffEncoder::new(std::fs::File::create(sc.path("rgb.tif")).unwrap())
+        .unwrap()
+        .write_image::<tiff::encoder::colortype::RGB8>(160, 120, &vec![7; 160 * 120 * 3])
+        .unwrap();
+    check_register(
+        &sc,
+        "--depth",
+        &sc.p("rgb.tif"),
+        2,
+        &["rgb.tif", "expected one channel"],
+    );
     std::fs::write(sc.path("garbage.json"), b"{ cam_K: ").unwrap();
     check_register(
         &sc,
@@ -638,37 +651,13 @@ fn eval_reads_the_tless_layout_models_cad_and_a_primesense_split() {
     write_cases(dir.path());
     let plain = dir.path().join("bop");
     let tless = dir.path().join("tless");
-    let rows = |root: &Path, split: &str, csv: &str| -> Vec<Vec<String>> {
-        let out = dir.path().join(format!("out-{split}"));
-        check(
-            &[
-                "eval",
-                "--dataset",
-                s(root),
-                "--split",
-                split,
-                "--gt-mask",
-                "--seed",
-                "2",
-                "--out",
-                s(&out),
-                "-q",
-            ],
-            0,
-            &[],
-        );
-        let text = std::fs::read_to_string(out.join(csv)).unwrap();
-        // Every field but the time.
-        text.lines()
-            .map(|l| l.split(',').take(6).map(str::to_owned).collect())
-            .collect()
-    };
-    let want = rows(&plain, "test", "ours-softmax-icp_bop-test.csv");
+    let want = bop_rows(dir.path(), &plain, "test", "ours-softmax-icp_bop-test.csv");
     assert_eq!(want.len(), 3, "{want:?}");
     std::fs::rename(&plain, &tless).unwrap();
     std::fs::rename(tless.join("models"), tless.join("models_cad")).unwrap();
     std::fs::rename(tless.join("test"), tless.join("test_primesense")).unwrap();
-    let got = rows(
+    let got = bop_rows(
+        dir.path(),
         &tless,
         "test_primesense",
         "ours-softmax-icp_tless-test-primesense.csv",
@@ -688,6 +677,69 @@ fn eval_reads_the_tless_layout_models_cad_and_a_primesense_split() {
         2,
         &["neither a BOP dataset (models/, or T-LESS's models_cad/"],
     );
+}
+
+#[test]
+fn eval_reads_depth_stored_as_tiff_as_itodd_ships_it() {
+    // ITODD stores its depth maps as TIFF (`depth/{im_id:06}.tif`, `stored × depth_scale =
+    // mm` as the PNGs): the same two views with their depth rewritten as 16-bit TIFF give the
+    // same BOP rows.
+    let dir = tempfile::tempdir().unwrap();
+    write_cases(dir.path());
+    let root = dir.path().join("bop");
+    let want = bop_rows(dir.path(), &root, "test", "ours-softmax-icp_bop-test.csv");
+    assert_eq!(want.len(), 3, "{want:?}");
+    let mut converted = 0;
+    for scene in std::fs::read_dir(root.join("test")).unwrap() {
+        let depth_dir = scene.unwrap().path().join("depth");
+        for png in std::fs::read_dir(&depth_dir).unwrap() {
+            let png = png.unwrap().path();
+            // Stored values back from metres at depth_scale 1 (1 mm per step).
+            let m = ic_render::io::read_depth_png(&png, 1.0, None).unwrap();
+            let stored: Vec<u16> = m.data.iter().map(|z| (z * 1000.0).round() as u16).collect();
+            let tif = std::fs::File::create(png.with_extension("tif")).unwrap();
+            tiff::encoder::TiffEncoder::new(tif)
+                .unwrap()
+                .write_image::<tiff::encoder::colortype::Gray16>(m.width, m.height, &stored)
+                .unwrap();
+            std::fs::remove_file(&png).unwrap();
+            converted += 1;
+        }
+    }
+    assert!(converted >= 2, "{converted}");
+    let got = bop_rows(dir.path(), &root, "test", "ours-softmax-icp_bop-test.csv");
+    assert_eq!(got, want);
+}
+
+/// `eval --dataset root --split split --gt-mask` of the shipped default method; the rows of
+/// its BOP results file `csv`, every field but the time.
+fn bop_rows(dir: &Path, root: &Path, split: &str, csv: &str) -> Vec<Vec<String>> {
+    let out = dir.join(format!(
+        "out-{split}-{}",
+        root.file_name().unwrap().to_string_lossy()
+    ));
+    let _ = std::fs::remove_dir_all(&out);
+    check(
+        &[
+            "eval",
+            "--dataset",
+            s(root),
+            "--split",
+            split,
+            "--gt-mask",
+            "--seed",
+            "2",
+            "--out",
+            s(&out),
+            "-q",
+        ],
+        0,
+        &[],
+    );
+    let text = std::fs::read_to_string(out.join(csv)).unwrap();
+    text.lines()
+        .map(|l| l.split(',').take(6).map(str::to_owned).collect())
+        .collect()
 }
 
 // ---------------------------------------------------------------------------------------------

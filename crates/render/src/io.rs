@@ -2,7 +2,8 @@
 //!
 //! - Depth as a 16-bit grayscale PNG in the BOP convention: `stored value × depth_scale =
 //!   millimetres` (0 = no return), or as a 32-bit float OpenEXR with one channel `Z` (reading
-//!   also accepts a single `Y` channel), in metres.
+//!   also accepts a single `Y` channel), in metres. Reading also takes a one-channel TIFF
+//!   (16-bit or 32-bit float samples; BOP's ITODD stores depth so) in the BOP convention.
 //! - Masks as 8-bit grayscale PNG (0 / 255; any non-zero value reads as `true`).
 //! - Instance ids as 16-bit grayscale PNG.
 //!
@@ -247,6 +248,73 @@ pub fn read_depth_png(
         height: h,
         data,
     })
+}
+
+/// The size of a TIFF's first image from its header alone; fails when it exceeds the limits of
+/// [`check_image_size`].
+pub fn tiff_size(path: impl AsRef<Path>) -> Result<(u32, u32), ImageIoError> {
+    open_tiff(path.as_ref()).map(|(_, size)| size)
+}
+
+/// A TIFF decoder at its first image, and that image's size (checked against
+/// [`check_image_size`] before any pixel is decoded).
+type TiffDecoder = tiff::decoder::Decoder<BufReader<std::io::Take<File>>>;
+fn open_tiff(path: &Path) -> Result<(TiffDecoder, (u32, u32)), ImageIoError> {
+    let mut decoder = tiff::decoder::Decoder::new(open_image(path)?).map_err(|e| codec(path, e))?;
+    let (w, h) = decoder.dimensions().map_err(|e| codec(path, e))?;
+    check_image_size(path, w as u64, h as u64)?;
+    Ok((decoder, (w, h)))
+}
+
+/// Reads the first image of a one-channel TIFF depth map in the BOP convention (`stored ×
+/// depth_scale = mm`, 0 = no return) back to metres: 16-bit unsigned or 32-bit float samples
+/// (a float map is scaled the same way; its non-finite and negative samples read as 0).
+/// `expected` checks the size, before any pixel is decoded.
+pub fn read_depth_tiff(
+    path: impl AsRef<Path>,
+    depth_scale: f64,
+    expected: Option<(u32, u32)>,
+) -> Result<DepthImage, ImageIoError> {
+    use tiff::ColorType;
+    use tiff::decoder::DecodingResult;
+    let path = path.as_ref();
+    check_scale(path, depth_scale)?;
+    let (mut decoder, (w, h)) = open_tiff(path)?;
+    check_size(path, w, h, expected)?;
+    let format = |found: String| ImageIoError::Format {
+        path: path.to_path_buf(),
+        expected: "one channel of 16-bit unsigned or 32-bit float samples".into(),
+        found,
+    };
+    match decoder.colortype().map_err(|e| codec(path, e))? {
+        ColorType::Gray(16 | 32) => {}
+        other => return Err(format(format!("{other:?}"))),
+    }
+    let to_metres = |stored: f64| (stored * depth_scale / 1000.0) as f32;
+    let data: Vec<f32> = match decoder.read_image().map_err(|e| codec(path, e))? {
+        DecodingResult::U16(v) => v.into_iter().map(|x| to_metres(x as f64)).collect(),
+        // A float map's non-finite and negative samples are missing returns.
+        DecodingResult::F32(v) => v
+            .into_iter()
+            .map(|x| {
+                if x.is_finite() && x > 0.0 {
+                    to_metres(x as f64)
+                } else {
+                    0.0
+                }
+            })
+            .collect(),
+        other => {
+            let kind = match other {
+                DecodingResult::U32(_) => "32-bit unsigned",
+                DecodingResult::I16(_) => "16-bit signed",
+                DecodingResult::I32(_) => "32-bit signed",
+                _ => "other",
+            };
+            return Err(format(format!("{kind} samples")));
+        }
+    };
+    ic_geometry::Image::from_vec(w, h, data).map_err(|e| codec(path, e))
 }
 
 /// Writes a mask as an 8-bit PNG (255 = true, 0 = false).

@@ -280,6 +280,60 @@ fn scene_builder_is_seeded_and_places_things_sensibly() {
 }
 
 #[test]
+fn tiff_depth_reads_in_the_bop_convention_and_reports_bad_files() {
+    use tiff::encoder::{TiffEncoder, colortype};
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    let write = |name: &str, f: &dyn Fn(&mut TiffEncoder<std::fs::File>)| {
+        let mut e = TiffEncoder::new(std::fs::File::create(p(name)).unwrap()).unwrap();
+        f(&mut e);
+    };
+    // 16-bit: stored × depth_scale = mm (ITODD's depth maps), as the PNG reader.
+    write("d16.tif", &|e| {
+        e.write_image::<colortype::Gray16>(3, 2, &[0, 1000, 2500, 65_535, 1, 7])
+            .unwrap()
+    });
+    let d = io::read_depth_tiff(p("d16.tif"), 0.1, Some((3, 2))).unwrap();
+    let want = [0.0, 0.1, 0.25, 6.5535, 0.0001, 0.0007];
+    assert!(
+        d.data.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-6),
+        "{:?}",
+        d.data
+    );
+    assert_eq!(io::tiff_size(p("d16.tif")).unwrap(), (3, 2));
+    // 32-bit float, scaled the same way; non-finite and negative samples are no return.
+    write("f32.tif", &|e| {
+        e.write_image::<colortype::Gray32Float>(2, 2, &[1500.0, f32::NAN, -3.0, 0.5])
+            .unwrap()
+    });
+    let f = io::read_depth_tiff(p("f32.tif"), 1.0, None).unwrap();
+    assert_eq!(f.data, [1.5, 0.0, 0.0, 0.0005]);
+    // Errors name the file and say what is wrong.
+    let e = io::read_depth_tiff(p("d16.tif"), 1.0, Some((4, 2))).unwrap_err();
+    assert!(matches!(e, ImageIoError::SizeMismatch { .. }), "{e}");
+    write("rgb.tif", &|e| {
+        e.write_image::<colortype::RGB8>(1, 1, &[1, 2, 3]).unwrap()
+    });
+    let e = io::read_depth_tiff(p("rgb.tif"), 1.0, None).unwrap_err();
+    assert!(
+        matches!(e, ImageIoError::Format { .. }) && e.to_string().contains("rgb.tif"),
+        "{e}"
+    );
+    write("u8.tif", &|e| {
+        e.write_image::<colortype::Gray8>(1, 1, &[9]).unwrap()
+    });
+    assert!(matches!(
+        io::read_depth_tiff(p("u8.tif"), 1.0, None).unwrap_err(),
+        ImageIoError::Format { .. }
+    ));
+    std::fs::write(p("junk.tif"), b"II*\0 not a tiff").unwrap();
+    let e = io::read_depth_tiff(p("junk.tif"), 1.0, None).unwrap_err();
+    assert!(e.to_string().contains("junk.tif"), "{e}");
+    let e = io::read_depth_tiff(p("d16.tif"), 0.0, None).unwrap_err();
+    assert!(e.to_string().contains("d16.tif"), "{e}");
+}
+
+#[test]
 fn image_io_round_trips_and_reports_bad_files() {
     let dir = tempfile::tempdir().unwrap();
     let p = |n: &str| dir.path().join(n);
