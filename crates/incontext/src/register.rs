@@ -517,6 +517,23 @@ pub fn summary_text(report: &Value) -> String {
             .map(|x| format!("{x:.3}"))
             .unwrap_or_else(|| "–".into()),
     ));
+    // --all: every instance returned, best first (the first is the pose above).
+    if let Some(instances) = report["instances"].as_array() {
+        s.push_str(&format!("instances ({}, best first):\n", instances.len()));
+        for (i, inst) in instances.iter().enumerate() {
+            let agreement = inst["whole_view"]["agreement"]
+                .as_f64()
+                .map(|a| format!(", whole view {:.0} % agreeing", 100.0 * a))
+                .unwrap_or_default();
+            s.push_str(&format!(
+                "  {}. {} confidence {:.3}, t = [{}]{agreement}\n",
+                i + 1,
+                inst["verdict"].as_str().unwrap_or("?"),
+                inst["confidence"].as_f64().unwrap_or(f64::NAN),
+                fmt3(&inst["pose"]["t"]),
+            ));
+        }
+    }
     let w = &d["whole_view"];
     if let (Some(visible), Some(agreement), Some(front), Some(missing)) = (
         w["visible_pixels"].as_u64(),

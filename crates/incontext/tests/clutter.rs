@@ -172,6 +172,16 @@ fn register_all_returns_each_instance_of_the_model_best_first() {
         "{report:#}"
     );
     assert_eq!(report["pose"], instances[0]["pose"]);
+    // The text report lists the same instances, best first.
+    let text = register_all(&["--min-confidence", "0.2", "--seed", "1"]);
+    let out = String::from_utf8_lossy(&text.stdout);
+    assert!(
+        out.contains(&format!("instances ({}, best first):", instances.len())),
+        "{out}"
+    );
+    for k in 1..=instances.len() {
+        assert!(out.contains(&format!("\n  {k}. ")), "{out}");
+    }
     // --min-confidence is for --all, and a probability.
     assert_exit(
         register_all(&["--min-confidence", "1.5"]),
