@@ -400,9 +400,6 @@ impl BopWriter {
     }
 }
 
-/// One annotated object of an image (`im_id`, its `gt_index`-th): writes its `mask/` (`all`,
-/// the full silhouette) and `mask_visib/` (`visib`) PNGs into `scene_dir` and returns its
-/// `scene_gt.json` and `scene_gt_info.json` entries, its visible pixels and visible fraction.
 /// The depth map of image `im_id` of a BOP scene folder, in metres: `depth/{im_id:06}.png`, or,
 /// when there is no PNG, `depth/{im_id:06}.tif` (BOP's ITODD; `stored × depth_scale = mm`
 /// either way). Errors name the PNG when neither exists.
@@ -419,6 +416,9 @@ fn read_bop_depth(
     ic_render::io::read_depth_png(&png, depth_scale, None)
 }
 
+/// One annotated object of an image (`im_id`, its `gt_index`-th): writes its `mask/` (`all`,
+/// the full silhouette) and `mask_visib/` (`visib`) PNGs into `scene_dir` and returns its
+/// `scene_gt.json` and `scene_gt_info.json` entries, its visible pixels and visible fraction.
 /// `pose` maps the model into the camera in units of `mm_per_unit` millimetres; `depth` only
 /// says where the sensor returned.
 fn annotate(

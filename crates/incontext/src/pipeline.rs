@@ -1516,10 +1516,9 @@ impl Pipeline {
         // The returned pose's whole view is reported (it does not change the choice: on
         // synthetic clutter ranking consistent poses first changed 2 of 59 choices, neither
         // right; `docs/decisions.md`, "What `register --all` returns").
+        // (The search itself measures whole views only for `--all`.)
         let mut r = all.remove(0);
-        if r.whole_view.is_none() {
-            r.whole_view = self.whole_view(object, depth_n, intrinsics, &r);
-        }
+        r.whole_view = self.whole_view(object, depth_n, intrinsics, &r);
         Ok(r)
     }
 
@@ -2079,20 +2078,25 @@ impl Pipeline {
     ) -> Option<crate::verify::WholeView> {
         let observation =
             crate::verify::Observation::from_depth(depth_n, intrinsics, r.mask.as_ref()?)?;
-        let shape = match &object.mesh {
-            Some(mesh) => crate::verify::ModelShape::Mesh(mesh.clone()),
-            None => crate::verify::ModelShape::points(
-                object.points.clone(),
-                0.5 * self.options.voxel_size,
-            ),
-        };
         Some(crate::verify::whole_view(
-            &shape,
+            &self.model_shape(object),
             &r.pose_normalised,
             depth_n,
             intrinsics,
             observation.roughness,
         ))
+    }
+
+    /// How the verification draws `object`: its mesh, or its points splatted at half the voxel
+    /// size.
+    fn model_shape(&self, object: &Object) -> crate::verify::ModelShape {
+        match &object.mesh {
+            Some(mesh) => crate::verify::ModelShape::Mesh(mesh.clone()),
+            None => crate::verify::ModelShape::points(
+                object.points.clone(),
+                0.5 * self.options.voxel_size,
+            ),
+        }
     }
 
     /// Registers `object` on the pixels of `mask` in `depth_n`.
@@ -2288,7 +2292,7 @@ impl Pipeline {
         mut seconds: StageSeconds,
         clock: Instant,
     ) -> Result<Registration> {
-        use crate::verify::{ModelShape, rotation_set};
+        use crate::verify::rotation_set;
         let rotations = rotation_set(self.options.rotations).map_err(PipelineError::input)?;
         let (m, n) = match self.options.sweep_points {
             0 => self.point_counts(),
@@ -2402,10 +2406,7 @@ impl Pipeline {
             candidates.extend(mine.into_iter().map(|c| (network, c)));
         }
         let top = candidates.len();
-        let shape = match &object.mesh {
-            Some(mesh) => ModelShape::Mesh(mesh.clone()),
-            None => ModelShape::points(object.points.clone(), 0.5 * self.options.voxel_size),
-        };
+        let shape = self.model_shape(object);
         let mut rng = ChaCha8Rng::seed_from_u64(ic_data::mix_seed(seed, 0x5e1f));
         let target = self.icp_target(object, &mut seconds)?;
         let mut verified: Vec<(crate::verify::Score, Hypothesis)> = Vec::new();

@@ -534,23 +534,15 @@ pub fn summary_text(report: &Value) -> String {
             ));
         }
     }
-    let w = &d["whole_view"];
-    if let (Some(visible), Some(agreement), Some(front), Some(missing)) = (
-        w["visible_pixels"].as_u64(),
-        w["agreement"].as_f64(),
-        w["in_front"].as_f64(),
-        w["missing"].as_f64(),
-    ) {
-        let consistent = visible as usize >= crate::verify::WHOLE_MIN_VISIBLE
-            && agreement >= crate::verify::WHOLE_AGREEMENT
-            && front < crate::verify::WHOLE_IN_FRONT;
+    if let Ok(w) = serde_json::from_value::<crate::verify::WholeView>(d["whole_view"].clone()) {
         s.push_str(&format!(
-            "whole view: {:.0} % of the model's {visible} visible pixels agree with the depth, \
+            "whole view: {:.0} % of the model's {} visible pixels agree with the depth, \
              {:.0} % lie in front of it, {:.0} % have no return{}\n",
-            100.0 * agreement,
-            100.0 * front,
-            100.0 * missing,
-            if consistent {
+            100.0 * w.agreement,
+            w.visible_pixels,
+            100.0 * w.in_front,
+            100.0 * w.missing,
+            if w.consistent() {
                 ""
             } else {
                 " — the pose does not explain the depth where its model would be seen: check it \

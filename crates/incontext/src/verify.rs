@@ -452,7 +452,7 @@ pub const WHOLE_MIN_VISIBLE: usize = 50;
 /// rendered pixels are *visible*. Of those, it *agrees* when the observed depth of its pixel
 /// or a neighbour is within [`depth_tolerance`], is *in front* when it lies in front of all of
 /// them (free space the sensor saw through), and is *missing* when its pixel has no return.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, serde::Deserialize)]
 pub struct WholeView {
     /// Pixels of the depth map the model covers.
     pub rendered_pixels: usize,
