@@ -98,6 +98,7 @@ pub mod parts;
 pub mod pipeline;
 pub mod register;
 pub mod render;
+pub mod shape;
 pub mod train;
 pub mod verify;
 

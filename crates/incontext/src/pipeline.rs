@@ -258,6 +258,9 @@ pub struct Object {
     pub diameter: f64,
     /// Seconds spent sampling the points and normals.
     pub seconds: f64,
+    /// The spreads of its surface seen from many directions, computed when first needed
+    /// ([`Object::view_spreads`]).
+    view_spreads: std::sync::OnceLock<crate::shape::ViewSpreads>,
 }
 
 impl std::fmt::Debug for Object {
@@ -379,7 +382,16 @@ impl Object {
             tree,
             diameter,
             seconds: 0.0,
+            view_spreads: std::sync::OnceLock::new(),
         })
+    }
+
+    /// The spreads of the object's surface seen from [`crate::shape::VIEWS`] directions, which
+    /// the ranking of instances compares their shapes with; computed on the first call
+    /// (≈ 10 ms for 4 096 points) and kept.
+    pub fn view_spreads(&self) -> &crate::shape::ViewSpreads {
+        self.view_spreads
+            .get_or_init(|| crate::shape::ViewSpreads::of(&self.points, self.diameter))
     }
 }
 
@@ -586,6 +598,10 @@ pub struct InstanceCandidate {
     pub size_ratio: f64,
     /// Whether the size ratio lies in [[`MIN_SIZE_RATIO`], [`MAX_SIZE_RATIO`]].
     pub plausible: bool,
+    /// How far the two principal spreads of its back-projected points lie from those of the
+    /// nearest of the model's views ([`crate::shape::ViewSpreads::distance`]; dimensionless,
+    /// 0 = a view of the model spreads exactly so).
+    pub shape_distance: f64,
     /// Whether its mask reaches the border of the sensor's frame (within [`BORDER_PX`]): the
     /// object may be cut off, its extent and pose less sure.
     pub truncated: bool,
@@ -735,23 +751,37 @@ fn mask_iou(a: &Mask, b: &Mask) -> f64 {
 /// this fraction of the model's diameter where they meet ([`crate::parts::contacts`]).
 pub const PART_DEPTH_GAP: f64 = 0.5;
 
-/// Instances whose size ratio lies within this factor of [`TYPICAL_SIZE_RATIO`] fit equally
-/// well: among them the ranking prefers the most pixels (the nearest, least hidden instance).
+/// Touching instances each too small for the model are joined ([`crate::parts`]) when
+/// together their size ratio reaches [`TYPICAL_SIZE_RATIO`] over this factor, without
+/// passing it times this factor.
 pub const CLOSE_SIZE_FACTOR: f64 = 1.25;
+
+/// Weights of [`InstanceCandidate::fit`], the ranking's logistic model (`docs/decisions.md`,
+/// "Ranking the instances by the model's views"): per unit of ln(pixels), …
+pub const RANK_WEIGHT_PIXELS: f64 = 0.52;
+/// … per unit of |ln(size ratio / [`TYPICAL_SIZE_RATIO`])|, …
+pub const RANK_WEIGHT_SIZE: f64 = 2.63;
+/// … for an instance the border cuts off, …
+pub const RANK_WEIGHT_TRUNCATED: f64 = 0.73;
+/// … and per unit of [`InstanceCandidate::shape_distance`], which counts up to
+/// [`RANK_MAX_SHAPE_DISTANCE`] (an instance of no spread is infinitely far).
+pub const RANK_WEIGHT_SHAPE: f64 = 2.59;
+pub const RANK_MAX_SHAPE_DISTANCE: f64 = 3.0;
 
 impl InstanceCandidate {
     /// A candidate of `mask`, whose back-projected `points` (normalised units, camera frame,
-    /// at least one) fix its extent against the model's `diameter`; `frame` is the sensor's
-    /// ([`sensor_frame`]).
+    /// at least one) fix its extent against the diameter of `object` and its shape against
+    /// the object's views; `frame` is the sensor's ([`sensor_frame`]).
     fn new(
         mask: Mask,
         points: &[Vec3],
         score: f32,
-        diameter: f64,
+        object: &Object,
         frame: (u32, u32, u32, u32),
         parts: usize,
         cut: bool,
     ) -> InstanceCandidate {
+        let diameter = object.diameter.max(1e-9);
         let extent = visible_extent(points);
         let size_ratio = extent / diameter;
         InstanceCandidate {
@@ -760,6 +790,7 @@ impl InstanceCandidate {
             extent,
             size_ratio,
             plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
+            shape_distance: object.view_spreads().distance(points, diameter),
             truncated: touches_border(&mask, frame),
             cut,
             parts,
@@ -768,24 +799,31 @@ impl InstanceCandidate {
         }
     }
 
-    /// Ranking key: plausible first; the network's instances (and joined parts) before
-    /// pieces cut from heaps; then those within [`CLOSE_SIZE_FACTOR`] of
-    /// [`TYPICAL_SIZE_RATIO`]: those of the network's own input size before an extra size's
-    /// ([`InstanceCandidate::input`]), whole in the image before cut off by its border, the
-    /// network's own instances before joined parts, by pixels; then the rest by the size
-    /// ratio nearest it (in log scale), again the own input size's first; then the
-    /// segmentation score.
-    fn rank_key(&self) -> (bool, bool, bool, bool, bool, bool, f64, f32) {
+    /// How well the candidate fits the model, the ranking's order among candidates of one
+    /// kind (higher first): a logistic model of "this is the target's instance" fitted on
+    /// validation clutter scenes (`docs/decisions.md`, "Ranking the instances by the model's
+    /// views"), on ln(pixels) (the nearest, least hidden instance), the size ratio's distance
+    /// to [`TYPICAL_SIZE_RATIO`] in log scale, whether the border cuts it off, and
+    /// [`Self::shape_distance`] (capped at [`RANK_MAX_SHAPE_DISTANCE`]). Only differences
+    /// between candidates of one image matter: the image's size shifts every candidate's
+    /// ln(pixels) alike.
+    pub fn fit(&self) -> f64 {
         let off = (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs();
-        let close = off <= CLOSE_SIZE_FACTOR.ln();
+        RANK_WEIGHT_PIXELS * (self.pixels.max(1) as f64).ln()
+            - RANK_WEIGHT_SIZE * off
+            - RANK_WEIGHT_TRUNCATED * f64::from(u8::from(self.truncated))
+            - RANK_WEIGHT_SHAPE * self.shape_distance.min(RANK_MAX_SHAPE_DISTANCE)
+    }
+
+    /// Ranking key: plausible first; the network's instances (and joined parts) before
+    /// pieces cut from heaps; those of the network's own input size before an extra size's
+    /// ([`InstanceCandidate::input`]); then by [`Self::fit`]; then the segmentation score.
+    fn rank_key(&self) -> (bool, bool, bool, f64, f32) {
         (
             self.plausible,
             !self.cut,
-            close,
             self.input == 0,
-            !(close && self.truncated),
-            self.parts == 1,
-            if close { self.pixels as f64 } else { -off },
+            self.fit(),
             self.score,
         )
     }
@@ -821,21 +859,16 @@ impl InstanceCandidate {
     }
 
     /// Sorts `candidates` best first: plausible ones first, the network's instances (and
-    /// joined parts) before pieces cut from heaps, then those within [`CLOSE_SIZE_FACTOR`] of
-    /// [`TYPICAL_SIZE_RATIO`] (the network's own input size before an extra size's, whole in
-    /// the image before cut off by its border, instances before joined parts, most pixels
-    /// first), then the rest by the size ratio nearest it, then the segmentation score.
+    /// joined parts) before pieces cut from heaps, the network's own input size before an
+    /// extra size's, then by [`Self::fit`], then by the segmentation score.
     pub fn rank(candidates: &mut [InstanceCandidate]) {
         candidates.sort_by(|a, b| {
             let (ka, kb) = (a.rank_key(), b.rank_key());
             kb.0.cmp(&ka.0)
                 .then(kb.1.cmp(&ka.1))
                 .then(kb.2.cmp(&ka.2))
-                .then(kb.3.cmp(&ka.3))
-                .then(kb.4.cmp(&ka.4))
-                .then(kb.5.cmp(&ka.5))
-                .then(kb.6.total_cmp(&ka.6))
-                .then(kb.7.total_cmp(&ka.7))
+                .then(kb.3.total_cmp(&ka.3))
+                .then(kb.4.total_cmp(&ka.4))
         });
     }
 }
@@ -1021,6 +1054,9 @@ pub struct InstanceChoice {
     pub candidates: usize,
     /// Its visible extent over the model's diameter.
     pub size_ratio: f64,
+    /// How far its spreads lie from the nearest of the model's views
+    /// ([`InstanceCandidate::shape_distance`]).
+    pub shape_distance: f64,
     /// How many of the network's instances it joins ([`InstanceCandidate::parts`]).
     pub parts: usize,
     /// Whether its mask reaches the sensor frame's border ([`InstanceCandidate::truncated`]).
@@ -1697,7 +1733,7 @@ impl Pipeline {
                 continue;
             }
             out.push(InstanceCandidate::new(
-                mask, &points, inst.score, diameter, frame, 1, false,
+                mask, &points, inst.score, object, frame, 1, false,
             ));
             clouds.push(points);
         }
@@ -1736,7 +1772,7 @@ impl Pipeline {
                     mask,
                     &union,
                     score,
-                    diameter,
+                    object,
                     frame,
                     g.len(),
                     false,
@@ -1773,7 +1809,7 @@ impl Pipeline {
                 let points: Vec<Vec3> = piece.iter().map(|&k| clouds[i][k]).collect();
                 let score = out[i].score;
                 out.push(InstanceCandidate::new(
-                    mask, &points, score, diameter, frame, 1, true,
+                    mask, &points, score, object, frame, 1, true,
                 ));
                 cut += 1;
             }
@@ -1898,6 +1934,7 @@ impl Pipeline {
                 rank: i,
                 candidates: network_instances,
                 size_ratio: c.size_ratio,
+                shape_distance: c.shape_distance,
                 parts: c.parts,
                 truncated: c.truncated,
                 cut: c.cut,
@@ -1957,6 +1994,7 @@ impl Pipeline {
                         rank: 0,
                         candidates: its_instances,
                         size_ratio: c.size_ratio,
+                        shape_distance: c.shape_distance,
                         parts: c.parts,
                         truncated: c.truncated,
                         cut: c.cut,
@@ -2809,75 +2847,71 @@ mod tests {
     }
 
     #[test]
-    fn among_instances_of_a_fitting_size_the_least_hidden_is_tried_first() {
-        let c = |size_ratio: f64, pixels: usize, score: f32| InstanceCandidate {
-            score,
+    fn instances_are_ranked_by_pixels_size_and_shape_together_and_kinds_stay_apart() {
+        let c = |size_ratio: f64, pixels: usize, shape_distance: f64| InstanceCandidate {
+            score: 0.9,
             pixels,
             extent: size_ratio,
             size_ratio,
             plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
+            shape_distance,
             truncated: false,
             cut: false,
             parts: 1,
             input: 0,
             mask: Mask::filled(1, 1, false),
         };
+        let key = |c: &InstanceCandidate| (c.pixels, (c.size_ratio * 100.0).round() as usize);
         let mut v = vec![
-            c(0.8, 900, 0.9),  // the typical size, partly hidden
-            c(0.7, 2500, 0.6), // fits as well, most pixels: first
-            c(0.9, 1600, 0.7),
-            c(0.45, 5000, 0.99), // fits badly (half the typical extent): after the close ones
-            c(0.3, 9000, 0.99),  // worse still
-            c(2.0, 20000, 1.0),  // implausible (too large): last
+            c(0.8, 900, 0.1),   // the typical size, partly hidden
+            c(0.7, 2500, 0.1),  // a little small, but many more pixels: first
+            c(0.8, 2500, 0.8),  // as many pixels, a shape no view of the model has
+            c(0.45, 5000, 0.1), // the most pixels, half the typical extent
+            c(2.0, 20000, 0.0), // implausible (too large): last
         ];
         InstanceCandidate::rank(&mut v);
-        let order: Vec<usize> = v.iter().map(|c| c.pixels).collect();
-        assert_eq!(order, [2500, 1600, 900, 5000, 9000, 20000]);
+        let order: Vec<_> = v.iter().map(key).collect();
+        assert_eq!(
+            order,
+            [(2500, 70), (900, 80), (5000, 45), (2500, 80), (20000, 200)]
+        );
+        // The fit is one score: a shape twice as far from the model's views costs what
+        // fewer pixels or a worse size would.
+        assert!(v[0].fit() > v[1].fit() && v[1].fit() > v[2].fit() && v[2].fit() > v[3].fit());
 
-        // Parts joined to the model's size come after the network's own instances of a
-        // fitting size, even with more pixels, and before those that fit badly.
-        let joined = InstanceCandidate {
-            parts: 3,
-            ..c(0.85, 12000, 0.8)
-        };
-        v.push(joined);
+        // Cut off by the image's border: the same instance moves down, not to the end.
+        v[0].truncated = true;
         InstanceCandidate::rank(&mut v);
-        let order: Vec<(usize, usize)> = v.iter().map(|c| (c.pixels, c.parts)).collect();
+        let order: Vec<_> = v.iter().map(key).collect();
+        assert_eq!(
+            order,
+            [(900, 80), (2500, 70), (5000, 45), (2500, 80), (20000, 200)]
+        );
+
+        // An extra input size's candidates come after every plausible one of the network's
+        // own size, whatever their fit, and before the implausible ones; pieces cut from heaps
+        // after both.
+        v.push(InstanceCandidate {
+            input: 1,
+            ..c(0.8, 30000, 0.0)
+        });
+        v.push(InstanceCandidate {
+            cut: true,
+            ..c(0.8, 40000, 0.0)
+        });
+        InstanceCandidate::rank(&mut v);
+        let order: Vec<_> = v.iter().map(key).collect();
         assert_eq!(
             order,
             [
-                (2500, 1),
-                (1600, 1),
-                (900, 1),
-                (12000, 3),
-                (5000, 1),
-                (9000, 1),
-                (20000, 1)
+                (900, 80),
+                (2500, 70),
+                (5000, 45),
+                (2500, 80),
+                (30000, 80),
+                (40000, 80),
+                (20000, 200)
             ]
-        );
-
-        // One cut off by the image's border comes after every one of a fitting size whole
-        // in the image, joined parts included.
-        v[0].truncated = true;
-        InstanceCandidate::rank(&mut v);
-        let order: Vec<usize> = v.iter().map(|c| c.pixels).collect();
-        assert_eq!(order, [1600, 900, 12000, 2500, 5000, 9000, 20000]);
-
-        // An extra input size's candidates come after the own size's of the same fit, even
-        // with more pixels or a nearer size ratio, and before those that fit worse.
-        v.push(InstanceCandidate {
-            input: 1,
-            ..c(0.8, 30000, 0.9)
-        });
-        v.push(InstanceCandidate {
-            input: 1,
-            ..c(0.44, 100, 0.9)
-        });
-        InstanceCandidate::rank(&mut v);
-        let order: Vec<usize> = v.iter().map(|c| c.pixels).collect();
-        assert_eq!(
-            order,
-            [1600, 900, 12000, 2500, 30000, 5000, 9000, 100, 20000]
         );
     }
 
@@ -2889,6 +2923,7 @@ mod tests {
             extent: size_ratio,
             size_ratio,
             plausible: (MIN_SIZE_RATIO..=MAX_SIZE_RATIO).contains(&size_ratio),
+            shape_distance: 0.0,
             truncated: false,
             cut,
             parts: 1,
