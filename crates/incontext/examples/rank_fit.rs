@@ -18,7 +18,6 @@ use std::io::Write;
 
 use ic_data::CorpusOptions;
 use ic_data::bop::{BopDataset, BopLoadOptions};
-use incontext::pipeline::{RANK_MAX_SHAPE_DISTANCE, TYPICAL_SIZE_RATIO};
 use incontext::{Object, Pipeline};
 
 /// One instance: its target (set, index), features, label, and place in the shipped ranking.
@@ -27,15 +26,6 @@ struct Row {
     x: [f64; 4],
     right: bool,
     shipped_fit: f64,
-}
-
-fn features(c: &incontext::pipeline::InstanceCandidate) -> [f64; 4] {
-    [
-        (c.pixels.max(1) as f64).ln(),
-        (c.size_ratio / TYPICAL_SIZE_RATIO).ln().abs(),
-        f64::from(u8::from(c.truncated)),
-        c.shape_distance.min(RANK_MAX_SHAPE_DISTANCE),
-    ]
 }
 
 /// Logistic regression with weights `w` (4) and intercept `b`: minimises
@@ -175,18 +165,11 @@ fn main() -> anyhow::Result<()> {
             {
                 let iou = samples
                     .iter()
-                    .map(|s| {
-                        let (mut both, mut either) = (0usize, 0usize);
-                        for (&x, &y) in c.mask.data.iter().zip(&s.mask_visib.data) {
-                            both += usize::from(x && y);
-                            either += usize::from(x || y);
-                        }
-                        both as f64 / either.max(1) as f64
-                    })
+                    .map(|s| ic_seg::post::iou(&c.mask, &s.mask_visib))
                     .fold(0.0, f64::max);
                 let row = Row {
                     target: (set, t),
-                    x: features(c),
+                    x: c.rank_features(),
                     right: iou >= 0.5,
                     shipped_fit: c.fit(),
                 };

@@ -808,11 +808,23 @@ impl InstanceCandidate {
     /// between candidates of one image matter: the image's size shifts every candidate's
     /// ln(pixels) alike.
     pub fn fit(&self) -> f64 {
-        let off = (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs();
-        RANK_WEIGHT_PIXELS * (self.pixels.max(1) as f64).ln()
-            - RANK_WEIGHT_SIZE * off
-            - RANK_WEIGHT_TRUNCATED * f64::from(u8::from(self.truncated))
-            - RANK_WEIGHT_SHAPE * self.shape_distance.min(RANK_MAX_SHAPE_DISTANCE)
+        let [pixels, size, truncated, shape] = self.rank_features();
+        RANK_WEIGHT_PIXELS * pixels
+            - RANK_WEIGHT_SIZE * size
+            - RANK_WEIGHT_TRUNCATED * truncated
+            - RANK_WEIGHT_SHAPE * shape
+    }
+
+    /// What [`Self::fit`] weighs: ln(pixels), |ln(size ratio / [`TYPICAL_SIZE_RATIO`])|, 1
+    /// when the border cuts the instance off (else 0), and [`Self::shape_distance`] capped at
+    /// [`RANK_MAX_SHAPE_DISTANCE`].
+    pub fn rank_features(&self) -> [f64; 4] {
+        [
+            (self.pixels.max(1) as f64).ln(),
+            (self.size_ratio / TYPICAL_SIZE_RATIO).ln().abs(),
+            f64::from(u8::from(self.truncated)),
+            self.shape_distance.min(RANK_MAX_SHAPE_DISTANCE),
+        ]
     }
 
     /// Ranking key: plausible first; the network's instances (and joined parts) before

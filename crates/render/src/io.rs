@@ -229,6 +229,11 @@ pub fn write_depth_png(
     )
 }
 
+/// A stored depth sample in the BOP convention (`stored × depth_scale = mm`), in metres.
+fn stored_to_metres(stored: f64, depth_scale: f64) -> f32 {
+    (stored * depth_scale / 1000.0) as f32
+}
+
 /// Reads a 16-bit depth PNG written with `depth_scale` back to metres. `expected` checks the
 /// size.
 pub fn read_depth_png(
@@ -241,7 +246,7 @@ pub fn read_depth_png(
     let (w, h, bytes) = read_png_gray(path, png::BitDepth::Sixteen, expected)?;
     let data = bytes
         .chunks_exact(2)
-        .map(|c| (u16::from_be_bytes([c[0], c[1]]) as f64 * depth_scale / 1000.0) as f32)
+        .map(|c| stored_to_metres(u16::from_be_bytes([c[0], c[1]]) as f64, depth_scale))
         .collect();
     Ok(Image {
         width: w,
@@ -290,15 +295,17 @@ pub fn read_depth_tiff(
         ColorType::Gray(16 | 32) => {}
         other => return Err(format(format!("{other:?}"))),
     }
-    let to_metres = |stored: f64| (stored * depth_scale / 1000.0) as f32;
     let data: Vec<f32> = match decoder.read_image().map_err(|e| codec(path, e))? {
-        DecodingResult::U16(v) => v.into_iter().map(|x| to_metres(x as f64)).collect(),
+        DecodingResult::U16(v) => v
+            .into_iter()
+            .map(|x| stored_to_metres(x as f64, depth_scale))
+            .collect(),
         // A float map's non-finite and negative samples are missing returns.
         DecodingResult::F32(v) => v
             .into_iter()
             .map(|x| {
                 if x.is_finite() && x > 0.0 {
-                    to_metres(x as f64)
+                    stored_to_metres(x as f64, depth_scale)
                 } else {
                     0.0
                 }
