@@ -1,21 +1,29 @@
-//! `cargo xtask fit-clutter-calibration`: the calibration of `incontext`'s confidence for poses
-//! on instances the segmentation network chose (`models/verify-calibration-clutter.json`).
+//! `cargo xtask fit-clutter-calibration`: the confidence of `incontext`'s poses on instances
+//! the segmentation network chose among several (`models/verify-calibration-clutter.json`).
 //!
 //! Input: `candidates.jsonl` files of `incontext eval --dataset DIR --candidates N` on clutter
 //! scenes of validation objects — every instance registered, whatever its verdict, with
-//! `right` (ADD-S below 0.1 of the diameter of the nearest true instance of the object), its
-//! `evidence` and its `verification` (`score`, `agreement`, …). The feature is the pipeline's
-//! `segmentation_evidence`: evidence × agreement (clamped to [0, 1]); the fit is isotonic
-//! (`ic_eval::Calibration::fit`). Prints how honest the verdict `ok` (calibrated confidence ≥
-//! 0.9, score ≥ 0.05) is under the lines' own confidence and under the new one (in-sample),
-//! and, with `--reliability FILE.svg|png`, draws both reliability diagrams.
+//! `right` (ADD-S below 0.1 of the diameter of the nearest true instance of the object) and
+//! the numbers `ic_eval::ClutterFeatures` reads (the verification, the whole view, the
+//! instance, the segmentation). The fit: a logistic regression of `right` on the `--features`
+//! (standardised, L2 penalty `--l2`; `ic_eval::Logistic`), then an isotonic calibration of its
+//! output (`ic_eval::Calibration::fit`). Prints how honest the verdict `ok` (calibrated
+//! confidence ≥ 0.9, score ≥ 0.05) is under the lines' own confidence and under the new one
+//! (in-sample), and with two files or more the same for each file under a fit on the others
+//! (held out); with `--reliability FILE.svg|png` it draws both reliability diagrams.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use ic_eval::{Calibration, reliability_bins};
+use ic_eval::{
+    Calibration, ClutterConfidence, ClutterFeatures, Logistic, LogisticOptions, reliability_bins,
+};
 use serde_json::{Value, json};
+
+/// The features the shipped confidence weighs (`docs/decisions.md`, "A confidence in clutter
+/// from several numbers").
+pub const DEFAULT_FEATURES: &str = "evidence_x_agreement,evidence,rival_score,coverage,agreement,misfit,violation,whole_agreement,ln_voxels";
 
 #[derive(Args, Debug)]
 pub struct FitClutterCalibrationArgs {
@@ -26,6 +34,12 @@ pub struct FitClutterCalibrationArgs {
     /// Where to write the calibration (JSON, as `models/verify-calibration-clutter.json`).
     #[arg(long)]
     pub out: PathBuf,
+    /// The features of the logistic model (names of `ic_eval::clutter::FEATURE_NAMES`).
+    #[arg(long, value_delimiter = ',', default_value = DEFAULT_FEATURES)]
+    pub features: Vec<String>,
+    /// λ of the logistic model's penalty ½λ‖w‖² on the standardised weights.
+    #[arg(long, default_value_t = 1.0)]
+    pub l2: f64,
     /// How the candidates were made (the commands), recorded in the file (repeatable).
     #[arg(long)]
     pub fitted_on: Vec<String>,
@@ -39,8 +53,20 @@ const OK: f64 = 0.9;
 /// … and this raw render-and-compare score (incontext's `VERIFIED_FOUND`).
 const FOUND: f64 = 0.05;
 
-/// One registered instance: (segmentation evidence, score, confidence it was given, right).
-type Sample = (f64, f64, f64, bool);
+/// One registered instance.
+#[derive(Clone, Copy)]
+struct Sample {
+    features: ClutterFeatures,
+    /// The confidence the line was given.
+    confidence: f64,
+    right: bool,
+}
+
+impl Sample {
+    fn score(&self) -> f64 {
+        self.features.verification.score
+    }
+}
 
 fn read_samples(path: &Path) -> Result<Vec<Sample>> {
     let text =
@@ -51,29 +77,49 @@ fn read_samples(path: &Path) -> Result<Vec<Sample>> {
         .enumerate()
         .filter(|(_, l)| !l.trim().is_empty())
     {
-        let v: Value = serde_json::from_str(line)
-            .with_context(|| format!("{} line {}: not JSON", path.display(), i + 1))?;
-        let field = |name: &str, x: Option<f64>| {
-            x.with_context(|| format!("{} line {}: no number \"{name}\"", path.display(), i + 1))
-        };
+        let at = || format!("{} line {}", path.display(), i + 1);
+        let v: Value = serde_json::from_str(line).with_context(|| format!("{}: not JSON", at()))?;
         let right = v["right"]
             .as_bool()
-            .with_context(|| format!("{} line {}: no boolean \"right\"", path.display(), i + 1))?;
-        let evidence = field("evidence", v["evidence"].as_f64())?;
-        let agreement = field(
-            "verification.agreement",
-            v["verification"]["agreement"].as_f64(),
-        )?;
-        let score = field("verification.score", v["verification"]["score"].as_f64())?;
-        let confidence = field("confidence", v["confidence"].as_f64())?;
-        out.push((
-            (evidence * agreement).clamp(0.0, 1.0),
-            score,
+            .with_context(|| format!("{}: no boolean \"right\"", at()))?;
+        let confidence = v["confidence"]
+            .as_f64()
+            .with_context(|| format!("{}: no number \"confidence\"", at()))?;
+        let features: ClutterFeatures = serde_json::from_value(v)
+            .with_context(|| format!("{}: not a registration's numbers", at()))?;
+        out.push(Sample {
+            features,
             confidence,
             right,
-        ));
+        });
     }
     Ok(out)
+}
+
+/// The logistic model on `samples`, then the isotonic calibration of its output.
+fn fit(samples: &[Sample], features: &[String], l2: f64) -> Result<ClutterConfidence> {
+    let x = samples
+        .iter()
+        .map(|s| s.features.values(features))
+        .collect::<Result<Vec<_>, String>>()
+        .map_err(anyhow::Error::msg)?;
+    let right: Vec<bool> = samples.iter().map(|s| s.right).collect();
+    let options = LogisticOptions {
+        l2,
+        ..LogisticOptions::default()
+    };
+    let model =
+        Logistic::fit(features.to_vec(), &x, &right, options).map_err(anyhow::Error::msg)?;
+    let evidence: Vec<(f64, bool)> = x
+        .iter()
+        .zip(&right)
+        .map(|(x, &r)| (model.probability(x), r))
+        .collect();
+    let calibration = Calibration::fit(&evidence).map_err(anyhow::Error::msg)?;
+    Ok(ClutterConfidence {
+        evidence_model: model,
+        calibration,
+    })
 }
 
 /// (`ok` count, right among them, right overall) when `ok` = confidence ≥ [`OK`] and score ≥
@@ -81,46 +127,81 @@ fn read_samples(path: &Path) -> Result<Vec<Sample>> {
 fn ok_counts(samples: &[Sample], confidence: impl Fn(&Sample) -> f64) -> (usize, usize, usize) {
     let ok: Vec<&Sample> = samples
         .iter()
-        .filter(|s| confidence(s) >= OK && s.1 >= FOUND)
+        .filter(|s| confidence(s) >= OK && s.score() >= FOUND)
         .collect();
     (
         ok.len(),
-        ok.iter().filter(|s| s.3).count(),
-        samples.iter().filter(|s| s.3).count(),
+        ok.iter().filter(|s| s.right).count(),
+        samples.iter().filter(|s| s.right).count(),
+    )
+}
+
+fn report(name: &str, n: usize, (ok, right_ok, right): (usize, usize, usize)) {
+    println!(
+        "{name}: ok {ok} of {n}, right among ok {right_ok} (precision {:.3}), ok among right {:.3}",
+        right_ok as f64 / ok.max(1) as f64,
+        right_ok as f64 / right.max(1) as f64,
     )
 }
 
 pub fn run(args: FitClutterCalibrationArgs) -> Result<()> {
-    let mut samples = Vec::new();
+    let mut per_file = Vec::new();
     for p in &args.candidates {
-        samples.extend(read_samples(p)?);
+        per_file.push(read_samples(p)?);
     }
+    let samples: Vec<Sample> = per_file.iter().flatten().copied().collect();
     if samples.is_empty() {
         bail!("no candidate lines in {:?}", args.candidates);
     }
-    let fit: Vec<(f64, bool)> = samples.iter().map(|s| (s.0, s.3)).collect();
-    let c = Calibration::fit(&fit).map_err(anyhow::Error::msg)?;
-    let report = |name: &str, (ok, right_ok, right): (usize, usize, usize)| {
-        println!(
-            "{name}: ok {ok} of {n}, right among ok {right_ok} (precision {:.3}), ok among right {:.3}",
-            right_ok as f64 / ok.max(1) as f64,
-            right_ok as f64 / right.max(1) as f64,
-            n = samples.len(),
-        )
-    };
-    let before = ok_counts(&samples, |s| s.2);
-    let after = ok_counts(&samples, |s| c.apply(s.0));
-    report("the lines' confidence", before);
-    report("clutter calibration (in-sample)", after);
+    let c = fit(&samples, &args.features, args.l2)?;
+    let before = ok_counts(&samples, |s| s.confidence);
+    let after = ok_counts(&samples, |s| c.apply(&s.features));
+    report("the lines' confidence", samples.len(), before);
+    report("clutter confidence (in-sample)", samples.len(), after);
+    if per_file.len() > 1 {
+        for (i, held) in per_file.iter().enumerate() {
+            let others: Vec<Sample> = per_file
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| *j != i)
+                .flat_map(|(_, f)| f.iter().copied())
+                .collect();
+            let h = fit(&others, &args.features, args.l2)?;
+            let name = args.candidates[i].display();
+            report(
+                &format!("{name}, the lines' confidence"),
+                held.len(),
+                ok_counts(held, |s| s.confidence),
+            );
+            report(
+                &format!("{name}, held out (fitted on the other files)"),
+                held.len(),
+                ok_counts(held, |s| h.apply(&s.features)),
+            );
+        }
+    }
+    let m = &c.evidence_model;
+    println!(
+        "weights (standardised): {}; bias {:.3}",
+        m.features
+            .iter()
+            .zip(&m.weights)
+            .map(|(f, w)| format!("{f} {w:.3}"))
+            .collect::<Vec<_>>()
+            .join(", "),
+        m.bias
+    );
     let doc = json!({
-        "what": "isotonic calibration of incontext's segmentation evidence (evidence × verification agreement) on network-segmented instances in clutter: P(ADD-S < 0.1 d of a true instance | evidence)",
+        "what": "the confidence of incontext's poses on network-segmented instances in clutter: an isotonic calibration (knots) of a logistic model's output (evidence_model) over the registration's numbers: P(ADD-S < 0.1 d of a true instance | numbers)",
         "fitted_on": args.fitted_on,
         "candidate_files": args.candidates,
         "samples": samples.len(),
-        "right": samples.iter().filter(|s| s.3).count(),
+        "right": samples.iter().filter(|s| s.right).count(),
         "add_s_fraction": 0.1,
+        "l2": args.l2,
         "in_sample_ok": {"before": {"ok": before.0, "right": before.1}, "after": {"ok": after.0, "right": after.1}},
-        "knots": c.knots,
+        "evidence_model": m,
+        "knots": c.calibration.knots,
     });
     ic_geometry::io::write_atomic_with(
         &args.out,
@@ -131,12 +212,15 @@ pub fn run(args: FitClutterCalibrationArgs) -> Result<()> {
     println!(
         "wrote {} ({} knots from {} samples)",
         args.out.display(),
-        c.knots.len(),
+        c.calibration.knots.len(),
         samples.len()
     );
     if let Some(p) = &args.reliability {
-        let given: Vec<(f64, bool)> = samples.iter().map(|s| (s.2, s.3)).collect();
-        let calibrated: Vec<(f64, bool)> = samples.iter().map(|s| (c.apply(s.0), s.3)).collect();
+        let given: Vec<(f64, bool)> = samples.iter().map(|s| (s.confidence, s.right)).collect();
+        let calibrated: Vec<(f64, bool)> = samples
+            .iter()
+            .map(|s| (c.apply(&s.features), s.right))
+            .collect();
         ic_eval::calibration::plot_reliability(
             p,
             "Confidence in clutter (ADD-S < 0.1 d)",
@@ -146,7 +230,7 @@ pub fn run(args: FitClutterCalibrationArgs) -> Result<()> {
                     reliability_bins(&given, 10),
                 ),
                 (
-                    "clutter calibration (in-sample)".to_string(),
+                    "clutter confidence (in-sample)".to_string(),
                     reliability_bins(&calibrated, 10),
                 ),
             ],
@@ -161,33 +245,75 @@ pub fn run(args: FitClutterCalibrationArgs) -> Result<()> {
 mod tests {
     use super::*;
 
-    #[test]
-    fn samples_multiply_evidence_by_agreement_and_bad_lines_name_the_file() {
-        let dir = std::env::temp_dir().join(format!("xtask-clutter-cal-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let good = dir.join("good.jsonl");
-        std::fs::write(
-            &good,
-            "{\"right\":true,\"evidence\":0.8,\"confidence\":0.95,\"verification\":{\"agreement\":0.5,\"score\":0.8}}\n",
+    fn line(right: bool, evidence: f64, agreement: f64, score: f64) -> String {
+        format!(
+            "{{\"right\":{right},\"evidence\":{evidence},\"rival_score\":0.0,\"confidence\":0.5,\"object_voxels\":100,\
+             \"verification\":{{\"score\":{score},\"coverage\":{score},\"agreement\":{agreement},\"visible_agreement\":1.0,\"misfit\":0.2,\"violation\":0.0}},\
+             \"whole_view\":null,\"instance\":{{\"size_ratio\":0.8,\"shape_distance\":0.1,\"truncated\":false,\"cut\":false}},\
+             \"segmentation\":{{\"pixels\":500,\"score\":0.7}}}}\n"
         )
-        .unwrap();
+    }
+
+    #[test]
+    fn the_fitted_confidence_rises_with_the_evidence_and_bad_lines_name_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let good = dir.path().join("good.jsonl");
+        let mut text = String::new();
+        for i in 0..40 {
+            let e = i as f64 / 40.0;
+            // Right mostly at high evidence, with a few exceptions both ways.
+            let right = (e > 0.6) ^ (i % 7 == 0);
+            text.push_str(&line(right, e, 0.9, e));
+        }
+        std::fs::write(&good, text).unwrap();
         let s = read_samples(&good).unwrap();
-        assert_eq!(s.len(), 1);
-        assert!((s[0].0 - 0.4).abs() < 1e-12);
-        let bad = dir.join("bad.jsonl");
-        std::fs::write(&bad, "{\"right\":true}\n").unwrap();
-        let e = read_samples(&bad).unwrap_err().to_string();
-        assert!(e.contains("bad.jsonl") && e.contains("evidence"), "{e}");
-        std::fs::remove_dir_all(&dir).unwrap();
+        assert_eq!(s.len(), 40);
+        let features: Vec<String> = ["evidence", "agreement"].map(String::from).to_vec();
+        let c = fit(&s, &features, 1.0).unwrap();
+        assert!(c.apply(&s[39].features) > c.apply(&s[5].features));
+        assert!((0.0..=1.0).contains(&c.apply(&s[20].features)));
+        // The written file reads back as the pipeline reads it.
+        let out = dir.path().join("cal.json");
+        run(FitClutterCalibrationArgs {
+            candidates: vec![good.clone(), good.clone()],
+            out: out.clone(),
+            features: features.clone(),
+            l2: 1.0,
+            fitted_on: vec![],
+            reliability: None,
+        })
+        .unwrap();
+        let back = ClutterConfidence::from_json(&std::fs::read_to_string(&out).unwrap()).unwrap();
+        assert_eq!(back.evidence_model.features, features);
+        let bad = dir.path().join("bad.jsonl");
+        std::fs::write(&bad, "{\"right\":true,\"confidence\":0.5}\n").unwrap();
+        let e = format!("{:#}", read_samples(&bad).err().unwrap());
+        assert!(e.contains("bad.jsonl"), "{e}");
+        let unknown = fit(&s, &["colour".to_string()], 1.0)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(unknown.contains("colour"), "{unknown}");
     }
 
     #[test]
     fn ok_counts_need_both_the_confidence_and_the_score() {
+        let sample = |score: f64, confidence: f64, right: bool| Sample {
+            features: ClutterFeatures {
+                verification: ic_eval::clutter::CropScore {
+                    score,
+                    ..Default::default()
+                },
+                ..Default::default()
+            },
+            confidence,
+            right,
+        };
         let s = [
-            (0.0, 0.9, 0.95, true),
-            (0.0, 0.01, 0.95, true),
-            (0.0, 0.9, 0.5, false),
+            sample(0.9, 0.95, true),
+            sample(0.01, 0.95, true),
+            sample(0.9, 0.5, false),
         ];
-        assert_eq!(ok_counts(&s, |x| x.2), (1, 1, 2));
+        assert_eq!(ok_counts(&s, |x| x.confidence), (1, 1, 2));
     }
 }

@@ -37,8 +37,9 @@
 //!   results on view cases: acc@15°, ADD-S, verdict precision/recall, reliability diagram,
 //!   and fits the confidence calibration (`--fit-calibration`).
 //! - `cargo xtask fit-clutter-calibration --candidates FILE… --out FILE` fits the confidence
-//!   calibration of poses on network-segmented instances from `incontext eval --dataset …
-//!   --candidates N` lines on clutter scenes (`models/verify-calibration-clutter.json`).
+//!   of poses on network-segmented instances (a logistic model over the registration's
+//!   numbers, then an isotonic calibration) from `incontext eval --dataset … --candidates N`
+//!   lines on clutter scenes (`models/verify-calibration-clutter.json`).
 //! - `cargo xtask seg-post --model FILE --out FILE [--pixel-threshold …]` rewrites a
 //!   segmentation checkpoint's post-processing settings and inference input size (chosen on
 //!   validation scenes).
@@ -102,8 +103,9 @@ enum Cmd {
     /// Score `incontext eval --cases` results of view cases: accuracy, ADD-S, verdict
     /// precision and recall, reliability diagram, calibration fit.
     VerifyReport(verify_report::VerifyReportArgs),
-    /// Fit the confidence calibration of poses on network-segmented instances from
-    /// `incontext eval --dataset … --candidates N` lines on clutter scenes.
+    /// Fit the confidence of poses on network-segmented instances (logistic model, then
+    /// isotonic calibration) from `incontext eval --dataset … --candidates N` lines on clutter
+    /// scenes.
     FitClutterCalibration(clutter_calibration::FitClutterCalibrationArgs),
     /// Render cluttered scenes (tables, bins, shelves with 3–15 objects) as PNG contact
     /// sheets: depth, true instances, and a segmentation checkpoint's instances.

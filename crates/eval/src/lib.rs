@@ -8,6 +8,9 @@
 //!   τ), area under the accuracy curve, medians, per-object breakdowns.
 //! - [`report`]: markdown tables and JSON; [`plot`]: accuracy-vs-threshold curves (PNG, SVG).
 //! - [`calibration`]: isotonic calibration of a confidence score, reliability diagrams.
+//! - [`logistic`]: logistic regression (Newton's method, L2 penalty) over named features.
+//! - [`clutter`]: the numbers of a pose on an instance chosen among several, and the
+//!   confidence model over them (logistic, then isotonic).
 //! - [`cases`]: the scorer of exported registration cases — reads `gt.json` of case folders
 //!   and any number of JSONL result files (ours and Open3D's peers write the same lines) and
 //!   scores every method on every case (failures and missing lines count as 180° / ∞).
@@ -27,18 +30,22 @@
 
 pub mod calibration;
 pub mod cases;
+pub mod clutter;
 pub mod errors;
 pub mod instances;
+pub mod logistic;
 pub mod metrics;
 pub mod object_scores;
 pub mod plot;
 pub mod report;
 
 pub use calibration::{Calibration, ReliabilityBin, expected_calibration_error, reliability_bins};
+pub use clutter::{ClutterConfidence, ClutterFeatures};
 pub use errors::{
     PoseErrors, add, add_s, diameter, mspd, mssd, rotation_error_deg, translation_error,
     translation_error_sq,
 };
+pub use logistic::{Logistic, LogisticOptions};
 pub use metrics::{Summary, accuracy, accuracy_curve, auc, map_yi2018, median, per_object};
 pub use plot::{
     Curve, plot_accuracy_curves, plot_accuracy_curves_titled, plot_learning_curves, plot_xy,

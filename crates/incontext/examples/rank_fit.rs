@@ -29,67 +29,22 @@ struct Row {
 }
 
 /// Logistic regression with weights `w` (4) and intercept `b`: minimises
-/// Σ log(1 + exp(−yᵢ(w·xᵢ + b))) + ½‖w‖² by Newton's method.
-fn fit_logistic(rows: &[Row]) -> ([f64; 4], f64) {
-    const N: usize = 5;
-    let mut theta = [0.0f64; N];
-    for _ in 0..50 {
-        let mut grad = [0.0f64; N];
-        let mut hess = [[0.0f64; N]; N];
-        for r in rows {
-            let z: Vec<f64> = r.x.iter().copied().chain([1.0]).collect();
-            let s: f64 = z.iter().zip(&theta).map(|(a, b)| a * b).sum();
-            let p = 1.0 / (1.0 + (-s).exp());
-            let y = f64::from(u8::from(r.right));
-            for ((g, h), zi) in grad.iter_mut().zip(&mut hess).zip(&z) {
-                *g += (p - y) * zi;
-                for (hij, zj) in h.iter_mut().zip(&z) {
-                    *hij += p * (1.0 - p) * zi * zj;
-                }
-            }
-        }
-        // The penalty ½‖w‖² on the weights, not on the intercept (the last).
-        for (i, (g, t)) in grad.iter_mut().zip(&theta).enumerate().take(N - 1) {
-            *g += t;
-            hess[i][i] += 1.0;
-        }
-        let step = solve(hess, grad);
-        let mut change = 0.0f64;
-        for (t, s) in theta.iter_mut().zip(step) {
-            *t -= s;
-            change = change.max(s.abs());
-        }
-        if change < 1e-10 {
-            break;
-        }
-    }
-    ([theta[0], theta[1], theta[2], theta[3]], theta[4])
-}
-
-/// Solves `a x = b` (a symmetric positive definite, as the penalised Hessian is) by
-/// Gaussian elimination with partial pivoting.
-fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> [f64; N] {
-    for c in 0..N {
-        let p = (c..N)
-            .max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))
-            .unwrap_or(c);
-        a.swap(c, p);
-        b.swap(c, p);
-        let (pivot, pivot_b) = (a[c], b[c]);
-        for (row, rb) in a[c + 1..].iter_mut().zip(&mut b[c + 1..]) {
-            let f = row[c] / pivot[c];
-            for (x, p) in row[c..].iter_mut().zip(&pivot[c..]) {
-                *x -= f * p;
-            }
-            *rb -= f * pivot_b;
-        }
-    }
-    let mut x = [0.0; N];
-    for r in (0..N).rev() {
-        let s: f64 = (r + 1..N).map(|k| a[r][k] * x[k]).sum();
-        x[r] = (b[r] - s) / a[r][r];
-    }
-    x
+/// Σ log(1 + exp(−yᵢ(w·xᵢ + b))) + ½‖w‖² by Newton's method (`ic_eval::Logistic`, the features
+/// as they are, not standardised).
+fn fit_logistic(rows: &[Row]) -> anyhow::Result<([f64; 4], f64)> {
+    let names = ["ln_pixels", "size", "truncated", "shape"]
+        .map(String::from)
+        .to_vec();
+    let x: Vec<Vec<f64>> = rows.iter().map(|r| r.x.to_vec()).collect();
+    let right: Vec<bool> = rows.iter().map(|r| r.right).collect();
+    let options = ic_eval::LogisticOptions {
+        l2: 1.0,
+        standardise: false,
+        ..ic_eval::LogisticOptions::default()
+    };
+    let m = ic_eval::Logistic::fit(names, &x, &right, options).map_err(anyhow::Error::msg)?;
+    let w = &m.weights;
+    Ok(([w[0], w[1], w[2], w[3]], m.bias))
 }
 
 /// (targets whose instance was found, first, in the first 3, in the first 8) when each
@@ -189,7 +144,7 @@ fn main() -> anyhow::Result<()> {
             }
         }
     }
-    let (w, b) = fit_logistic(&rows);
+    let (w, b) = fit_logistic(&rows)?;
     println!(
         "weights: ln(pixels) {:.3}, size {:.3}, truncated {:.3}, shape {:.3}; intercept {:.3} ({} instances, {} of targets)",
         w[0],

@@ -106,5 +106,5 @@ pub use error::{CliError, ErrorKind, Result, ResultExt};
 pub use ic_pose::{Head, Refine};
 pub use pipeline::{
     CalibrationUsed, Object, Pipeline, PipelineBuilder, PipelineError, PipelineOptions,
-    Registration, StageSeconds, Verdict,
+    Registration, StageSeconds, Verdict, clutter_confidence, clutter_features,
 };

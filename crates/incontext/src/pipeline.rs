@@ -194,31 +194,60 @@ fn embedded_calibration(name: &str, text: &str) -> ic_eval::Calibration {
         .unwrap_or_else(|e| panic!("{name} is not a calibration: {e}"))
 }
 
-/// The isotonic calibration of a verified pose's [`segmentation_evidence`] when the
-/// segmentation network chose its pixels, `models/verify-calibration-clutter.json` (fitted by
-/// `cargo xtask fit-clutter-calibration` on every instance registered in clutter scenes of
-/// validation objects, see `models/README.md`): the probability that the pose is right (ADD-S
-/// below 0.1 of the diameter of a true instance of the object) given that evidence. In
+/// The confidence of a verified pose when the segmentation network chose its pixels among
+/// several instances, `models/verify-calibration-clutter.json` (fitted by `cargo xtask
+/// fit-clutter-calibration` on every instance registered in clutter scenes of validation
+/// objects, see `models/README.md`): a logistic model over the registration's numbers
+/// ([`clutter_features`]), then an isotonic calibration of its output — the probability that
+/// the pose is right (ADD-S below 0.1 of the diameter of a true instance of the object). In
 /// clutter most wrong poses are good fits of *another* object, which the single-object
 /// calibration ([`verified_calibration`]) calls right. Embedded in the binary.
-pub fn clutter_calibration() -> &'static ic_eval::Calibration {
-    static CALIBRATION: std::sync::OnceLock<ic_eval::Calibration> = std::sync::OnceLock::new();
-    CALIBRATION.get_or_init(|| {
-        embedded_calibration(
-            "models/verify-calibration-clutter.json",
-            include_str!("../../../models/verify-calibration-clutter.json"),
-        )
+pub fn clutter_confidence() -> &'static ic_eval::ClutterConfidence {
+    static CONFIDENCE: std::sync::OnceLock<ic_eval::ClutterConfidence> = std::sync::OnceLock::new();
+    CONFIDENCE.get_or_init(|| {
+        // Part of the binary: a bad file is a build defect, not an input error.
+        ic_eval::ClutterConfidence::from_json(include_str!(
+            "../../../models/verify-calibration-clutter.json"
+        ))
+        .unwrap_or_else(|e| panic!("models/verify-calibration-clutter.json: {e}"))
     })
 }
 
-/// The evidence a verified pose on a network-segmented instance rests on, in [0, 1]: its
-/// [`evidence`] times the verification's agreement (the fraction of the model's rendered
-/// pixels that the observed depth explains). A pose that explains the instance's pixels but
-/// whose rendering runs off them — a model fitted to another, differently shaped object — has
-/// low agreement; on clutter validation scenes the product separated right from wrong better
-/// than the evidence alone (`docs/decisions.md`).
-pub fn segmentation_evidence(evidence: f64, agreement: f64) -> f64 {
-    (evidence * agreement).clamp(0.0, 1.0)
+/// The numbers of a verified registration on a network-chosen instance that
+/// [`clutter_confidence`] weighs: its evidence and rival, its render-and-compare score in the
+/// crop, its whole view (when computed), its object voxels, its instance and segmentation.
+/// `None` for an unverified registration.
+pub fn clutter_features(r: &Registration) -> Option<ic_eval::ClutterFeatures> {
+    let v = r.verification?;
+    let instance = r.instance.unwrap_or_default();
+    Some(ic_eval::ClutterFeatures {
+        evidence: r.evidence?,
+        rival_score: r.rival_score.unwrap_or(0.0),
+        object_voxels: r.object_voxels,
+        verification: ic_eval::clutter::CropScore {
+            score: v.score,
+            coverage: v.coverage,
+            agreement: v.agreement,
+            visible_agreement: v.visible_agreement,
+            misfit: v.misfit,
+            violation: v.violation,
+        },
+        whole_view: r.whole_view.map(|w| ic_eval::clutter::WholeViewFractions {
+            agreement: w.agreement,
+            in_front: w.in_front,
+            missing: w.missing,
+        }),
+        instance: ic_eval::clutter::InstanceNumbers {
+            size_ratio: instance.size_ratio,
+            shape_distance: Some(instance.shape_distance),
+            truncated: instance.truncated,
+            cut: instance.cut,
+        },
+        segmentation: ic_eval::clutter::SegmentationNumbers {
+            pixels: r.segmentation.as_ref().map_or(0, |s| s.pixels),
+            score: r.segmentation.as_ref().and_then(|s| s.score).map(f64::from),
+        },
+    })
 }
 
 /// The winner of the verification is refined again on more object voxels; that finer fit is
@@ -533,7 +562,7 @@ pub struct PipelineOptions {
     /// `register --all` ([`Pipeline::register_depth_all`]) also returns `uncertain` instances
     /// whose confidence reaches this and whose whole projection is consistent with the depth
     /// map ([`crate::verify::WholeView::consistent`]; `None`: only `ok` ones). The confidence of a
-    /// network-segmented instance is calibrated on clutter ([`clutter_calibration`]), so a
+    /// network-segmented instance is calibrated on clutter ([`clutter_confidence`]), so a
     /// lower bar trades the share of right poses among those returned for more of the
     /// instances.
     pub all_min_confidence: Option<f64>,
@@ -987,8 +1016,7 @@ pub struct Registration {
     /// In [0, 1]. Verified registrations: the probability that the pose is right (ADD-S below
     /// 0.1 of the diameter), the calibration ([`verified_calibration`]) of the [`evidence`];
     /// when the segmentation network chose the pixels among several instances, the clutter
-    /// calibration ([`clutter_calibration`]) of the [`segmentation_evidence`]
-    /// ([`Registration::calibration`]).
+    /// confidence ([`clutter_confidence`]) of its numbers ([`Registration::calibration`]).
     /// Unverified: the fraction of the observed object voxels within [`MATCH_DISTANCE`]
     /// (normalised) of the model at the final pose.
     pub confidence: f64,
@@ -1042,7 +1070,7 @@ pub enum CalibrationUsed {
     /// only: [`verified_calibration`] of the [`evidence`], fitted on single objects.
     Object,
     /// The segmentation network chose the pixels among several instances:
-    /// [`clutter_calibration`] of the [`segmentation_evidence`], fitted on clutter scenes.
+    /// [`clutter_confidence`] of the registration's numbers, fitted on clutter scenes.
     Segmentation,
 }
 
@@ -1058,7 +1086,7 @@ impl CalibrationUsed {
 }
 
 /// Which segmentation instance a registration used ([`Registration::instance`]).
-#[derive(Clone, Copy, Debug, Serialize)]
+#[derive(Clone, Copy, Debug, Default, Serialize)]
 pub struct InstanceChoice {
     /// Its rank among the candidates (0 = the best size fit).
     pub rank: usize,
@@ -1920,15 +1948,17 @@ impl Pipeline {
                     // calibration's (it may be another object). A lone instance keeps the
                     // single-object calibration: the clutter one was fitted on scenes with
                     // several (`docs/decisions.md`).
-                    if let (Some(e), Some(v), true) = (r.evidence, r.verification, clutter) {
-                        r.confidence =
-                            clutter_calibration().apply(segmentation_evidence(e, v.agreement));
+                    r.instance = Some(choice);
+                    // The clutter confidence weighs the whole view; `--all` filters by it.
+                    if clutter || search != InstanceSearch::FirstOk {
+                        r.whole_view = self.whole_view(object, depth_n, intrinsics, &r);
+                    }
+                    if let (Some(f), Some(v), true) =
+                        (clutter_features(&r), r.verification, clutter)
+                    {
+                        r.confidence = clutter_confidence().apply(&f);
                         r.verdict = Verdict::of_verified(v.score, r.confidence, &self.options);
                         r.calibration = CalibrationUsed::Segmentation;
-                    }
-                    r.instance = Some(choice);
-                    if search != InstanceSearch::FirstOk {
-                        r.whole_view = self.whole_view(object, depth_n, intrinsics, &r);
                     }
                     let stop = search == InstanceSearch::FirstOk && r.verdict == Verdict::Ok;
                     done.push(r);
@@ -3008,22 +3038,55 @@ mod tests {
 
     #[test]
     fn clutter_confidence_doubts_moderate_fits_that_a_given_mask_would_trust() {
-        // A pose that explains its instance fully stays `ok` in clutter …
-        let full = clutter_calibration().apply(segmentation_evidence(0.99, 1.0));
+        let fit = |evidence: f64, coverage: f64, agreement: f64, misfit: f64, voxels: usize| {
+            ic_eval::ClutterFeatures {
+                evidence,
+                rival_score: 0.0,
+                object_voxels: voxels,
+                verification: ic_eval::clutter::CropScore {
+                    score: coverage,
+                    coverage,
+                    agreement,
+                    visible_agreement: agreement,
+                    misfit,
+                    violation: 0.0,
+                },
+                whole_view: Some(ic_eval::clutter::WholeViewFractions {
+                    agreement,
+                    in_front: 0.0,
+                    missing: 0.0,
+                }),
+                instance: ic_eval::clutter::InstanceNumbers {
+                    size_ratio: 0.8,
+                    shape_distance: Some(0.1),
+                    truncated: false,
+                    cut: false,
+                },
+                segmentation: ic_eval::clutter::SegmentationNumbers {
+                    pixels: 2000,
+                    score: Some(0.8),
+                },
+            }
+        };
+        // The embedded file loads (every feature known, a valid model and calibration).
+        let c = clutter_confidence();
+        // A pose that explains its instance fully, on many voxels, is `ok` in clutter …
+        let full = c.apply(&fit(0.99, 0.99, 1.0, 0.15, 400));
         assert!(full >= VERIFIED_OK, "{full}");
         // … a moderate fit, `ok` with a given mask, is often another object in clutter.
         let single = verified_calibration().apply(0.75);
-        let clutter = clutter_calibration().apply(segmentation_evidence(0.75, 0.9));
-        assert!(single >= VERIFIED_OK && clutter < 0.7, "{single} {clutter}");
-        // Monotone, a probability; the evidence is a product clamped to [0, 1].
+        let moderate = c.apply(&fit(0.75, 0.75, 0.9, 0.4, 150));
+        assert!(
+            single >= VERIFIED_OK && moderate < 0.7,
+            "{single} {moderate}"
+        );
+        // The calibration of the model's output is monotone and a probability.
         let mut last = 0.0;
         for i in 0..=100 {
-            let p = clutter_calibration().apply(i as f64 / 100.0);
+            let p = c.calibration.apply(i as f64 / 100.0);
             assert!((0.0..=1.0).contains(&p) && p >= last);
             last = p;
         }
-        assert_eq!(segmentation_evidence(1.5, 1.0), 1.0);
-        assert!((segmentation_evidence(0.8, 0.5) - 0.4).abs() < 1e-12);
     }
 
     #[test]

@@ -365,6 +365,20 @@ fn eval_candidates_lists_every_verified_hypothesis_with_its_network_and_errors()
             assert!(h["to_truth"].as_f64().unwrap() >= 0.0, "{h}");
         }
     }
+    // The numbers `cargo xtask fit-clutter-calibration` reads from a line are the ones the
+    // pipeline weighed: the clutter confidence of the line's features is its confidence.
+    let clutter: Vec<&serde_json::Value> = lines
+        .iter()
+        .filter(|l| l["calibration"] == "segmentation")
+        .collect();
+    assert!(!clutter.is_empty(), "no line with the clutter confidence");
+    for l in clutter {
+        let features: ic_eval::ClutterFeatures = serde_json::from_value((*l).clone()).unwrap();
+        let p = incontext::clutter_confidence().apply(&features);
+        let given = l["confidence"].as_f64().unwrap();
+        assert!((p - given).abs() < 1e-9, "{p} against {given}: {l}");
+        assert!(l["whole_view"].is_object(), "{l}");
+    }
 }
 
 /// BOP scores a target of `inst_count` instances on its `inst_count` most visible true
