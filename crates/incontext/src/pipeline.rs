@@ -1589,12 +1589,13 @@ impl Pipeline {
             clock,
             InstanceSearch::FirstOk,
         )?;
-        // The returned pose's whole view is reported (it does not change the choice: on
-        // synthetic clutter ranking consistent poses first changed 2 of 59 choices, neither
-        // right; `docs/decisions.md`, "What `register --all` returns").
-        // (The search itself measures whole views only for `--all`.)
+        // The returned pose's whole view is reported. The search measured it already for a
+        // pose on an instance chosen among several (its agreement is one of the clutter
+        // confidence's numbers); a lone instance's is measured here.
         let mut r = all.remove(0);
-        r.whole_view = self.whole_view(object, depth_n, intrinsics, &r);
+        if r.whole_view.is_none() {
+            r.whole_view = self.whole_view(object, depth_n, intrinsics, &r);
+        }
         Ok(r)
     }
 
@@ -1945,9 +1946,9 @@ impl Pipeline {
                 Ok(mut r) => {
                     // The network chose the pixels among several instances, or they are a
                     // piece of a heap: the confidence of a verified pose is the clutter
-                    // calibration's (it may be another object). A lone instance keeps the
-                    // single-object calibration: the clutter one was fitted on scenes with
-                    // several (`docs/decisions.md`).
+                    // confidence of its numbers (it may be another object). A lone instance
+                    // keeps the single-object calibration: the clutter one was fitted on
+                    // scenes with several (`docs/decisions.md`).
                     r.instance = Some(choice);
                     // The clutter confidence weighs the whole view; `--all` filters by it.
                     if clutter || search != InstanceSearch::FirstOk {
