@@ -103,11 +103,13 @@ pub const FEATURE_NAMES: [&str; 19] = [
     "segmentation_score",
 ];
 
-/// The shape distance a feature counts at most (and for an undefined one).
+/// The shape distance a feature counts at most (and for an undefined one); `incontext`'s
+/// instance ranking caps it here too (`RANK_MAX_SHAPE_DISTANCE`).
 pub const MAX_SHAPE_DISTANCE: f64 = 3.0;
 
 /// The size ratio an instance of the target typically has (its visible extent over the
-/// diameter), from which `size_misfit` counts.
+/// diameter), from which `size_misfit` counts; `incontext`'s instance ranking counts from it
+/// too (`TYPICAL_SIZE_RATIO`).
 pub const TYPICAL_SIZE_RATIO: f64 = 0.8;
 
 impl ClutterFeatures {

@@ -609,8 +609,9 @@ pub const MIN_SIZE_RATIO: f64 = 0.25;
 /// object, as when a mask runs into the support).
 pub const MAX_SIZE_RATIO: f64 = 1.3;
 /// The visible extent of an unoccluded object relative to its diameter, roughly: the
-/// ranking prefers instances near it.
-pub const TYPICAL_SIZE_RATIO: f64 = 0.8;
+/// ranking prefers instances near it. One value with the clutter confidence's `size_misfit`
+/// ([`ic_eval::clutter::TYPICAL_SIZE_RATIO`]).
+pub const TYPICAL_SIZE_RATIO: f64 = ic_eval::clutter::TYPICAL_SIZE_RATIO;
 
 /// One object instance found by the segmentation network, and how well its size fits the
 /// model.
@@ -795,7 +796,9 @@ pub const RANK_WEIGHT_TRUNCATED: f64 = 0.73;
 /// … and per unit of [`InstanceCandidate::shape_distance`], which counts up to
 /// [`RANK_MAX_SHAPE_DISTANCE`] (an instance of no spread is infinitely far).
 pub const RANK_WEIGHT_SHAPE: f64 = 2.59;
-pub const RANK_MAX_SHAPE_DISTANCE: f64 = 3.0;
+/// One value with the clutter confidence's `shape_distance` cap
+/// ([`ic_eval::clutter::MAX_SHAPE_DISTANCE`]).
+pub const RANK_MAX_SHAPE_DISTANCE: f64 = ic_eval::clutter::MAX_SHAPE_DISTANCE;
 
 impl InstanceCandidate {
     /// A candidate of `mask`, whose back-projected `points` (normalised units, camera frame,
@@ -1950,8 +1953,9 @@ impl Pipeline {
                     // keeps the single-object calibration: the clutter one was fitted on
                     // scenes with several (`docs/decisions.md`).
                     r.instance = Some(choice);
-                    // The clutter confidence weighs the whole view; `--all` filters by it.
-                    if clutter || search != InstanceSearch::FirstOk {
+                    // The clutter confidence of a verified pose weighs the whole view;
+                    // `--all` filters by it.
+                    if (clutter && r.verification.is_some()) || search != InstanceSearch::FirstOk {
                         r.whole_view = self.whole_view(object, depth_n, intrinsics, &r);
                     }
                     if let (Some(f), Some(v), true) =
