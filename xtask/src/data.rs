@@ -69,6 +69,11 @@ pub struct GenDataArgs {
     /// and the other, as structured-light sensors give; default 0, as the benchmark's sets).
     #[arg(long, default_value_t = 0.0)]
     pub shadow_probability: f64,
+    /// Cluttered scenes: see them through this camera instead of the 640×480 Kinect-like one
+    /// (pixels: e.g. `1280 720 640 640` for a RealSense-like 16:9 depth camera; the principal
+    /// point at the image's centre), the scenes' geometry kept.
+    #[arg(long, num_args = 4, value_names = ["WIDTH", "HEIGHT", "FX", "FY"])]
+    pub camera: Option<Vec<f64>>,
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub workers: Option<usize>,
@@ -283,12 +288,15 @@ pub fn gen_data(args: GenDataArgs) -> Result<()> {
     bar.finish();
     let room = writer.finish()?;
     let below5 = rates.0.iter().filter(|&&r| r < 0.05).count();
-    let clutter_cfg = ClutterConfig {
+    let mut clutter_cfg = ClutterConfig {
         fixed_sizes: true,
         full_masks: true,
         ..ClutterConfig::default()
     }
     .with_shadows(args.shadow_probability);
+    if let Some(c) = &args.camera {
+        clutter_cfg = clutter_cfg.with_camera(ic_train::camera_arg(c).context("--camera")?);
+    }
     let clutter = if args.clutter_count > 0 {
         let g = Arc::new(ClutterGenerator::new(
             corpus.clone(),

@@ -92,6 +92,12 @@ pub struct PostArgs {
     /// (`ic_seg::PostConfig::extra_inputs`).
     #[arg(long, value_parser = parse_input_sizes)]
     extra_inputs: Option<InputSizes>,
+    /// Size the network's input for each image's camera (`true`, the default of every file:
+    /// a network pixel spans the angle it spanned in training, the image's aspect ratio
+    /// kept; `ic_seg::Segmenter::input_size_for`) or always run it at its own input size
+    /// (`false`: another aspect ratio is squeezed into it).
+    #[arg(long)]
+    camera_input: Option<bool>,
     /// Four-output networks: ignore the centre offsets (the instances of the cores alone).
     #[arg(long, conflicts_with_all = ["centre_split", "centre_merge", "centre_min_share", "centre_spread_floor"])]
     no_centres: bool,
@@ -152,6 +158,9 @@ pub fn set_post(args: PostArgs) -> Result<()> {
     }
     if let Some(InputSizes(v)) = args.extra_inputs {
         p.extra_inputs = v;
+    }
+    if let Some(v) = args.camera_input {
+        p.camera_input = v;
     }
     if let Some(v) = args.input_width {
         cfg.net.input_width = v;

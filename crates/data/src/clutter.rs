@@ -95,7 +95,8 @@ pub struct ClutterConfig {
     /// BOP's `mask/` and `visib_fract`).
     pub full_masks: bool,
     /// A scene is redrawn (another attempt stream) when the target's first instance shows
-    /// fewer depth returns than this, in pixels of a 640×480 image (scaled with the area).
+    /// fewer depth returns than this, in pixels of the 640×480 Kinect-like camera (scaled with
+    /// fx·fy, what an object's pixel count scales with, for another camera).
     pub min_target_pixels: usize,
     pub max_attempts: usize,
 }
@@ -125,6 +126,14 @@ impl ClutterConfig {
     /// segmentation network.
     pub fn with_resolution(mut self, width: u32, height: u32) -> Self {
         self.intrinsics = self.intrinsics.resized(width, height);
+        self
+    }
+
+    /// The same scenes seen through another camera (pixels; e.g. a 1280×720 RealSense-like
+    /// one): the scenes' geometry and the camera's pose are kept, the image is what this
+    /// camera sees of them, and the sensor model is applied at its resolution.
+    pub fn with_camera(mut self, intrinsics: Intrinsics) -> Self {
+        self.intrinsics = intrinsics;
         self
     }
 
@@ -540,9 +549,11 @@ impl ClutterGenerator {
         for attempt in 0..self.config.max_attempts as u64 {
             let stream = mix(mix(self.seed, index), attempt);
             let scene = self.attempt(&mut renderer, index, stream)?;
-            let need = (self.config.min_target_pixels as f64
-                * (self.config.intrinsics.width as f64 * self.config.intrinsics.height as f64)
-                / (640.0 * 480.0))
+            // An object's pixel count scales with fx·fy: the same as the image's area for
+            // `with_resolution` (the field of view kept).
+            let (k, kinect) = (&self.config.intrinsics, Intrinsics::KINECT_640X480);
+            let need = (self.config.min_target_pixels as f64 * (k.fx * k.fy)
+                / (kinect.fx * kinect.fy))
                 .round() as usize;
             last = scene.objects[0].visible_pixels;
             if last >= need.max(1) {

@@ -201,11 +201,23 @@ pub struct PostConfig {
     /// `input_width × input_height`: [`crate::Segmenter::instances_per_input`] gives each
     /// size's instances, each size's set a partition of its own, for a pipeline that pools
     /// them as candidates (a finer input cuts apart touching objects that the training size
-    /// joins; a coarser one keeps whole what it cuts). Empty (the default): the network's own
-    /// size alone. At most [`MAX_EXTRA_INPUTS`], each side at most [`MAX_INPUT_SIDE`] and
+    /// joins; a coarser one keeps whole what it cuts), whatever the camera. Empty (the
+    /// default): the network's own size alone. At most [`MAX_EXTRA_INPUTS`], each side at most [`MAX_INPUT_SIDE`] and
     /// divisible like the network's own.
     #[serde(default)]
     pub extra_inputs: Vec<(u32, u32)>,
+    /// Size the network's input for each image's camera
+    /// ([`crate::Segmenter::input_size_for`]): a network pixel spans the angle it spanned in
+    /// training and the image keeps its aspect ratio, so the objects of a 16:9, wide-angle or
+    /// high-resolution camera reach the network at the shape and size it learned. `false`:
+    /// always `input_width × input_height` (another aspect ratio squeezed into it). Files
+    /// written before the field: on.
+    #[serde(default = "default_camera_input")]
+    pub camera_input: bool,
+}
+
+fn default_camera_input() -> bool {
+    true
 }
 
 /// The most extra input sizes [`PostConfig::extra_inputs`] may list (each costs a pass of
@@ -281,6 +293,7 @@ impl Default for PostConfig {
             centres: None,
             mirror_average: false,
             extra_inputs: Vec::new(),
+            camera_input: true,
         }
     }
 }

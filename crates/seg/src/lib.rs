@@ -61,6 +61,6 @@ pub mod unet;
 pub use config::{PostConfig, SegConfig, SegInput, SegTrainConfig, UNetConfig};
 pub use error::{Result, SegError};
 pub use geometric::{GeometricConfig, GeometricSegmentation, segment_geometric};
-pub use segmenter::{Segmentation, Segmenter};
+pub use segmenter::{Segmentation, Segmenter, TRAINING_CAMERA};
 pub use support::{SupportConfig, SupportPlane};
 pub use train::{SegExample, seg_loss};

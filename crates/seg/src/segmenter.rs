@@ -16,6 +16,10 @@ use crate::post::{Instance, best_instance, erode3x3, instances, masked_points, s
 use crate::unet::UNet;
 use crate::{Result, SegError, checkpoint};
 
+/// The camera every network here is trained through (resized to the network's input): the
+/// scene generators' Kinect-like 640×480 one, fx = fy = 525 pixels.
+pub const TRAINING_CAMERA: Intrinsics = Intrinsics::KINECT_640X480;
+
 /// The object found in a depth map.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Segmentation {
@@ -76,6 +80,56 @@ impl Segmenter {
 
     pub fn config(&self) -> &SegConfig {
         &self.config
+    }
+
+    /// The network's input size (pixels) for the images of camera `k` when
+    /// [`crate::PostConfig::camera_input`] is on: each side is the image's side × the
+    /// network's focal length / the camera's (fx for the width, fy for the height), so that a
+    /// network pixel spans the angle it spanned in training — every network here is trained
+    /// on scenes seen through [`TRAINING_CAMERA`] resized to the input, 525 pixels of focal
+    /// length at 640×480 — and the aspect ratio is the image's. Then, both sides together,
+    /// brought under 4× the trained input's area (the time and memory of the network grow
+    /// with it) and over 4 levels' worth of pixels on the short side, and each rounded to
+    /// the network's multiple. The training camera itself gives `input_width ×
+    /// input_height` exactly; with the option off, always that.
+    pub fn input_size_for(&self, k: &Intrinsics) -> (u32, u32) {
+        let net = &self.config.net;
+        if !self.config.post.camera_input {
+            return (net.input_width, net.input_height);
+        }
+        let div = 1u32 << (net.channels.len() - 1);
+        let t = TRAINING_CAMERA;
+        // The network's focal lengths, in network pixels.
+        let fx = t.fx * net.input_width as f64 / t.width as f64;
+        let fy = t.fy * net.input_height as f64 / t.height as f64;
+        let (mut w, mut h) = (k.width as f64 * fx / k.fx, k.height as f64 * fy / k.fy);
+        let cap = 4.0 * net.input_width as f64 * net.input_height as f64;
+        if w * h > cap {
+            let s = (cap / (w * h)).sqrt();
+            (w, h) = (w * s, h * s);
+        }
+        let short = (4 * div) as f64;
+        if w.min(h) < short {
+            let s = short / w.min(h);
+            (w, h) = (w * s, h * s);
+        }
+        let side = |v: f64| {
+            ((v / div as f64).round().max(1.0) as u32 * div)
+                .min(crate::config::MAX_INPUT_SIDE / div * div)
+        };
+        (side(w), side(h))
+    }
+
+    /// This segmenter with its input sized for camera `k` ([`Segmenter::input_size_for`];
+    /// the weights are shared), to run and post-process images of that camera.
+    pub fn for_camera(&self, k: &Intrinsics) -> Segmenter {
+        let (w, h) = self.input_size_for(k);
+        let mut s = self.clone();
+        s.config.net.input_width = w;
+        s.config.net.input_height = h;
+        // Sized once: the sized network's own input is not the trained one's.
+        s.config.post.camera_input = false;
+        s
     }
 
     /// Settings of the post-processing, e.g. to lower the score threshold.
@@ -191,6 +245,9 @@ impl Segmenter {
     /// has no valid pixel.
     pub fn segment(&self, depth: &DepthImage, intrinsics: &Intrinsics) -> Result<Segmentation> {
         intrinsics.check_image(depth)?;
+        if self.config.post.camera_input {
+            return self.for_camera(intrinsics).segment(depth, intrinsics);
+        }
         let t0 = Instant::now();
         let small = self.probabilities_small(&[(depth, intrinsics)])?.remove(0);
         let network_seconds = t0.elapsed().as_secs_f64();
@@ -266,13 +323,14 @@ impl Segmenter {
         Ok(out)
     }
 
-    /// This segmenter with the network's input size `width × height` (pixels) and no extra
-    /// input sizes (the weights are shared, not copied).
+    /// This segmenter with the network's input size `width × height` (pixels) whatever the
+    /// camera, and no extra input sizes (the weights are shared, not copied).
     pub fn at_input(&self, width: u32, height: u32) -> Segmenter {
         let mut s = self.clone();
         s.config.net.input_width = width;
         s.config.net.input_height = height;
         s.config.post.extra_inputs.clear();
+        s.config.post.camera_input = false;
         s
     }
 
@@ -295,6 +353,11 @@ impl Segmenter {
         want_votes: bool,
     ) -> Result<(Vec<Instance>, Option<CentreVotes>)> {
         intrinsics.check_image(depth)?;
+        if self.config.post.camera_input {
+            return self
+                .for_camera(intrinsics)
+                .instances_inner(depth, intrinsics, want_votes);
+        }
         let small = self.probabilities_small(&[(depth, intrinsics)])?.remove(0);
         self.post_process(&small, depth, intrinsics, want_votes)
     }

@@ -9,12 +9,14 @@ use ic_seg::unet::{Conv2d, max_pool2, upsample2};
 use ic_seg::{SegConfig, SegError, SegExample, SegInput, Segmenter, seg_loss};
 use ic_train::SegTrainer;
 
-/// A wall at depth 4 with a box at depth 3 whose position depends on `shift`.
-/// The camera of [`scene`]'s 64×48 depth maps.
+/// The camera of [`scene`]'s 64×48 depth maps: the training camera resized to them, so
+/// that a network trained and run on them at 64×48 keeps that input
+/// (`Segmenter::input_size_for`).
 fn camera() -> Intrinsics {
-    Intrinsics::new(60.0, 60.0, 31.5, 23.5, 64, 48).unwrap()
+    ic_seg::TRAINING_CAMERA.resized(64, 48)
 }
 
+/// A wall at depth 4 with a box at depth 3 whose position depends on `shift`.
 fn scene(shift: u32) -> (DepthImage, Mask) {
     let (w, h) = (64u32, 48u32);
     let mut depth = DepthImage::filled(w, h, 4.0);
@@ -176,7 +178,7 @@ fn overfits(cfg: SegConfig) {
     assert!(last.iou > 0.9, "IoU {}", last.iou);
     // And the segmenter finds the box at full resolution.
     let (depth, mask) = scene(0);
-    let k = Intrinsics::new(60.0, 60.0, 31.5, 23.5, 64, 48).unwrap();
+    let k = camera();
     let seg = trainer.segmenter().segment(&depth, &k).unwrap();
     let iou = ic_seg::post::iou(&seg.mask, &mask);
     assert!(iou > 0.8, "IoU {iou}");
@@ -268,7 +270,7 @@ fn loading_something_else_is_a_clear_checkpoint_error() {
 #[test]
 fn segment_rejects_a_depth_map_of_another_size_or_without_valid_pixels() {
     let seg = SegTrainer::new(SegConfig::tiny(), 1).unwrap().segmenter();
-    let k = Intrinsics::new(60.0, 60.0, 31.5, 23.5, 64, 48).unwrap();
+    let k = camera();
     let small = DepthImage::filled(32, 24, 1.0);
     assert!(seg.segment(&small, &k).is_err());
     let empty = DepthImage::filled(64, 48, 0.0);
@@ -513,7 +515,7 @@ fn mirror_averaging_is_the_mean_of_both_passes_and_commutes_with_a_mirror() {
         let mut cfg = SegConfig::tiny();
         cfg.net.outputs = 4;
         cfg.net.input = input;
-        let k = Intrinsics::new(30.0, 30.0, 15.5, 11.5, 32, 24).unwrap();
+        let k = ic_seg::TRAINING_CAMERA.resized(32, 24);
         let mut depth = DepthImage::filled(32, 24, 4.0);
         for v in 6..15 {
             for u in 5..17 {
@@ -636,4 +638,39 @@ fn each_extra_input_size_gives_its_own_instances_and_bad_sizes_are_refused() {
     json.as_object_mut().unwrap().remove("extra_inputs");
     let post: ic_seg::PostConfig = serde_json::from_value(json).unwrap();
     assert!(post.extra_inputs.is_empty());
+}
+
+#[test]
+fn the_training_camera_keeps_the_trained_input_and_other_cameras_get_their_aspect_and_angle() {
+    let seg = SegTrainer::new(SegConfig::clutter(), 1)
+        .unwrap()
+        .segmenter();
+    let size = |s: &Segmenter, k: &Intrinsics| s.input_size_for(k);
+    let trained = (256, 192);
+    // The training camera, and the same field of view at any resolution.
+    assert_eq!(size(&seg, &ic_seg::TRAINING_CAMERA), trained);
+    assert_eq!(
+        size(&seg, &ic_seg::TRAINING_CAMERA.resized(1280, 960)),
+        trained
+    );
+    // A 16:9 RealSense-like camera: a network pixel spans the trained 1/210 rad
+    // (1280·210/640 = 420, 720·210/640 = 236.25), each side a multiple of 8.
+    let realsense = Intrinsics::new(640.0, 640.0, 639.5, 359.5, 1280, 720).unwrap();
+    assert_eq!(size(&seg, &realsense), (424, 240));
+    // A wide camera of many pixels is brought under 4× the trained area, its aspect kept.
+    let wide = Intrinsics::new(300.0, 300.0, 1999.5, 1499.5, 4000, 3000).unwrap();
+    assert_eq!(size(&seg, &wide), (512, 384));
+    // A narrow telephoto view is brought over 32 pixels on its short side.
+    let narrow = Intrinsics::new(5000.0, 5000.0, 319.5, 239.5, 640, 480).unwrap();
+    assert_eq!(size(&seg, &narrow), (40, 32));
+    // Sized once: the sized segmenter runs at its size for that camera.
+    let sized = seg.for_camera(&realsense);
+    let net = &sized.config().net;
+    assert_eq!((net.input_width, net.input_height), (424, 240));
+    assert_eq!(size(&sized, &realsense), (424, 240));
+    // Off: always the trained size.
+    let mut off = seg.clone();
+    off.config_mut().post.camera_input = false;
+    assert_eq!(size(&off, &realsense), trained);
+    assert_eq!(size(&off.for_camera(&realsense), &realsense), trained);
 }

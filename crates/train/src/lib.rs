@@ -528,6 +528,30 @@ where
 static STOP: AtomicBool = AtomicBool::new(false);
 
 /// The process-wide stop flag that [`install_signal_handlers`] and [`request_stop`] set.
+/// The camera of a `--camera WIDTH HEIGHT FX FY` flag (pixels; the principal point at the
+/// image's centre), checked: whole sizes of 1–8192 pixels, positive finite focal lengths.
+pub fn camera_arg(values: &[f64]) -> anyhow::Result<ic_geometry::Intrinsics> {
+    let [w, h, fx, fy] = values else {
+        anyhow::bail!(
+            "a camera is WIDTH HEIGHT FX FY (4 numbers), got {}",
+            values.len()
+        );
+    };
+    for (name, v) in [("width", w), ("height", h)] {
+        if !(v.fract() == 0.0 && (1.0..=8192.0).contains(v)) {
+            anyhow::bail!("camera {name} {v} is not a whole number of pixels in 1–8192");
+        }
+    }
+    Ok(ic_geometry::Intrinsics::new(
+        *fx,
+        *fy,
+        (w - 1.0) / 2.0,
+        (h - 1.0) / 2.0,
+        *w as u32,
+        *h as u32,
+    )?)
+}
+
 pub fn stop_flag() -> &'static AtomicBool {
     &STOP
 }
@@ -972,5 +996,23 @@ mod tests {
         let out = tmp.path().join("new/folder/report.json");
         super::write_atomic(&out, b"{}").unwrap();
         assert_eq!(std::fs::read(&out).unwrap(), b"{}");
+    }
+
+    #[test]
+    fn a_camera_flag_centres_its_principal_point_and_refuses_what_is_not_a_camera() {
+        let k = super::camera_arg(&[1280.0, 720.0, 640.0, 645.0]).unwrap();
+        assert_eq!((k.width, k.height, k.fx, k.fy), (1280, 720, 640.0, 645.0));
+        assert_eq!((k.cx, k.cy), (639.5, 359.5));
+        for (bad, says) in [
+            (vec![1280.0, 720.0, 640.0], "4 numbers"),
+            (vec![1280.5, 720.0, 640.0, 640.0], "width"),
+            (vec![1280.0, 0.0, 640.0, 640.0], "height"),
+            (vec![1e9, 720.0, 640.0, 640.0], "width"),
+            (vec![1280.0, 720.0, -640.0, 640.0], "focal"),
+            (vec![1280.0, 720.0, 640.0, f64::NAN], "focal"),
+        ] {
+            let err = format!("{:#}", super::camera_arg(&bad).unwrap_err());
+            assert!(err.contains(says), "{bad:?}: {err}");
+        }
     }
 }

@@ -464,6 +464,11 @@ pub struct EvalArgs {
     /// e.g. at the training resolution of the network, to tell what the input's size costs.
     #[arg(long, num_args = 2, value_names = ["WIDTH", "HEIGHT"])]
     pub render_size: Option<Vec<u32>>,
+    /// Clutter scenes: see them through this camera instead (pixels: e.g. `1280 720 640 640`
+    /// for a RealSense-like 16:9 depth camera; the principal point at the image's centre),
+    /// the scenes' geometry kept: what another camera than the training one costs.
+    #[arg(long, num_args = 4, value_names = ["WIDTH", "HEIGHT", "FX", "FY"], conflicts_with = "render_size")]
+    pub camera: Option<Vec<f64>>,
     /// Clutter scenes: the probability that a scene's sensor casts the projector's shadows,
     /// and (drawn apart) that its depth is registered to a colour camera
     /// (`ic_data::SensorRanges::set_shadows`; default 0, as the benchmark's sets).
@@ -1332,6 +1337,9 @@ fn eval_clutter(args: &EvalArgs, seg: &Segmenter) -> Result<serde_json::Value> {
     };
     if let Some(size) = &args.render_size {
         cfg = cfg.with_resolution(size[0], size[1]);
+    }
+    if let Some(c) = &args.camera {
+        cfg = cfg.with_camera(crate::camera_arg(c).context("--camera")?);
     }
     cfg = cfg.with_shadows(args.shadow_probability);
     let (width, height) = (cfg.intrinsics.width, cfg.intrinsics.height);

@@ -422,6 +422,7 @@ fn clutter_eval_args(model: PathBuf, count: u64, out: PathBuf) -> ic_train::seg:
         oracle_maps: Vec::new(),
         core_radius: None,
         render_size: None,
+        camera: None,
         shadow_probability: 0.0,
         threads: None,
     }

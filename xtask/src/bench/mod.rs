@@ -625,11 +625,17 @@ fn strict_problems(report: &Report) -> Vec<String> {
         out.push(why.clone());
     }
     if let Some(c) = &report.clutter {
-        let parts = [
-            ("clutter segmentation", &c.segmentation),
-            ("clutter segmentation, shadowed", &c.segmentation_shadowed),
-            ("clutter pipeline", &c.pipeline),
+        let mut parts = vec![
+            ("clutter segmentation".to_string(), &c.segmentation),
+            (
+                "clutter segmentation, shadowed".to_string(),
+                &c.segmentation_shadowed,
+            ),
         ];
+        for (camera, result) in &c.segmentation_cameras {
+            parts.push((format!("clutter segmentation, {camera}"), result));
+        }
+        parts.push(("clutter pipeline".to_string(), &c.pipeline));
         for (label, result) in parts {
             if let Err(why) = result
                 && !why.ends_with(" is absent")
@@ -674,6 +680,7 @@ mod tests {
         report.clutter = Some(ClutterReport {
             scenes: 3,
             dir: "clutter-data".into(),
+            segmentation_cameras: vec![("16:9".into(), segmentation.clone())],
             segmentation,
             segmentation_shadowed: shadowed,
             pipeline,
@@ -702,6 +709,15 @@ mod tests {
         assert_eq!(
             problems,
             vec!["clutter pipeline: exit 2: bad dataset".to_string()]
+        );
+        // A camera's measurement that failed is refused too, named by its camera.
+        let mut report = clutter(ok(), ok(), ok());
+        if let Some(c) = &mut report.clutter {
+            c.segmentation_cameras[0].1 = Err("scene 1: no object could be placed".into());
+        }
+        assert_eq!(
+            strict_problems(&report),
+            vec!["clutter segmentation, 16:9: scene 1: no object could be placed".to_string()]
         );
     }
 }

@@ -9,8 +9,9 @@
 //!   over- and under-segmentation), once on the scenes as the benchmark's sensor draws them and
 //!   once on the same scenes with the projector's shadows and the registration's holes in every
 //!   one (`ClutterConfig::with_shadows(1.0)`: those draws come last, so the scenes are the same
-//!   but for the bands without a return that real structured-light maps have), and
-//!   `incontext eval --dataset` runs `register`'s default method on every target (ADD-S to the
+//!   but for the bands without a return that real structured-light maps have), and once
+//!   through each of [`OTHER_CAMERAS`] (a 16:9 and a wide one: the same scenes, another
+//!   image), and `incontext eval --dataset` runs `register`'s default method on every target (ADD-S to the
 //!   nearest true instance, rotation, time).
 //! - **Real frames** (`../shared/data/real/*/`, no ground truth): `incontext eval --frames`
 //!   registers each frame as `register` and `register --all` do and judges each pose by
@@ -47,6 +48,26 @@ fn clutter_config() -> ClutterConfig {
     }
 }
 
+/// The other cameras the clutter network is also scored through, on the same scenes (their
+/// geometry and camera pose kept; the network's input sized from each camera, `docs/decisions.md`,
+/// "Any camera"): label, width, height, fx, fy (pixels; the principal point centred).
+pub const OTHER_CAMERAS: [(&str, u32, u32, f64, f64); 2] = [
+    (
+        "16:9 RealSense-like, 1280×720, fx 640",
+        1280,
+        720,
+        640.0,
+        640.0,
+    ),
+    (
+        "wide Kinect v2-like, 512×424, fx 365",
+        512,
+        424,
+        365.0,
+        365.0,
+    ),
+];
+
 /// The clutter benchmark's results.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct ClutterReport {
@@ -57,6 +78,9 @@ pub struct ClutterReport {
     /// The same on the same scenes with the projector's shadows and the registration's holes
     /// in every one, or why it is missing.
     pub segmentation_shadowed: Result<Value, String>,
+    /// The same on the same scenes seen through each of [`OTHER_CAMERAS`] (its label), or why
+    /// it is missing.
+    pub segmentation_cameras: Vec<(String, Result<Value, String>)>,
     /// The `incontext --json eval --dataset` report (its `datasets.clutter.results`), or why
     /// it is missing.
     pub pipeline: Result<Value, String>,
@@ -144,30 +168,36 @@ fn ensure_clutter_data(
         room_count: 0,
         clutter_count: count,
         shadow_probability: 0.0,
+        camera: None,
         workers: Some(workers),
     })?;
     install_partial(&partial, dir, &want)
 }
 
 /// The clutter network's instances against every object's on the same scenes; with
-/// `shadows`, every scene also has the projector's shadows and the registration's holes.
+/// `shadows`, every scene also has the projector's shadows and the registration's holes; with
+/// `camera`, the scenes are seen through it instead of the benchmark's camera.
 fn clutter_segmentation(
     root: &Path,
     corpus: Arc<Corpus>,
     seed: u64,
     count: u64,
     shadows: bool,
+    camera: Option<ic_geometry::Intrinsics>,
 ) -> Result<Value> {
     let seg = ic_seg::Segmenter::load(&root.join(CLUTTER_SEG_MODEL))
         .with_context(|| format!("loading {CLUTTER_SEG_MODEL}"))?;
-    let config = clutter_config().with_shadows(if shadows { 1.0 } else { 0.0 });
+    let mut config = clutter_config().with_shadows(if shadows { 1.0 } else { 0.0 });
+    if let Some(k) = camera {
+        config = config.with_camera(k);
+    }
     let g = ClutterGenerator::new(corpus, config, seed)?;
-    let label = if shadows {
-        "clutter segmentation, shadowed"
-    } else {
-        "clutter segmentation"
+    let label = match (shadows, camera) {
+        (_, Some(k)) => format!("clutter segmentation, {}×{} camera", k.width, k.height),
+        (true, None) => "clutter segmentation, shadowed".into(),
+        (false, None) => "clutter segmentation".into(),
     };
-    let bar = crate::bench::common::progress_bar(count, label);
+    let bar = crate::bench::common::progress_bar(count, &label);
     let mut matches = Vec::new();
     for i in 0..count {
         let scene = g.scene(i)?;
@@ -196,17 +226,30 @@ pub fn clutter(
     let t0 = Instant::now();
     let dir = work.join("clutter-data");
     ensure_clutter_data(objects, seed, count, &dir, threads)?;
-    let (segmentation, segmentation_shadowed) = if root.join(CLUTTER_SEG_MODEL).is_file() {
-        let corpus = Arc::new(objects.corpus(Split::Test, seed)?);
-        let run = |shadows| {
-            clutter_segmentation(root, corpus.clone(), seed, count, shadows)
-                .map_err(|e| format!("{e:#}"))
+    let (segmentation, segmentation_shadowed, segmentation_cameras) =
+        if root.join(CLUTTER_SEG_MODEL).is_file() {
+            let corpus = Arc::new(objects.corpus(Split::Test, seed)?);
+            let run = |shadows, camera| {
+                clutter_segmentation(root, corpus.clone(), seed, count, shadows, camera)
+                    .map_err(|e| format!("{e:#}"))
+            };
+            let cameras = OTHER_CAMERAS
+                .iter()
+                .map(|&(label, w, h, fx, fy)| {
+                    let k = ic_train::camera_arg(&[w as f64, h as f64, fx, fy])
+                        .map_err(|e| format!("{e:#}"));
+                    (label.to_string(), k.and_then(|k| run(false, Some(k))))
+                })
+                .collect();
+            (run(false, None), run(true, None), cameras)
+        } else {
+            let why = format!("{CLUTTER_SEG_MODEL} is absent");
+            let cameras = OTHER_CAMERAS
+                .iter()
+                .map(|c| (c.0.to_string(), Err(why.clone())))
+                .collect();
+            (Err(why.clone()), Err(why), cameras)
         };
-        (run(false), run(true))
-    } else {
-        let why = format!("{CLUTTER_SEG_MODEL} is absent");
-        (Err(why.clone()), Err(why))
-    };
     let runs = work.join("runs/clutter");
     let saved = work.join("runs/clutter.json");
     let earlier = resume.then(|| read_json(&saved)).flatten();
@@ -239,6 +282,7 @@ pub fn clutter(
         dir: crate::bench::common::rel(&dir),
         segmentation,
         segmentation_shadowed,
+        segmentation_cameras,
         pipeline,
         pipeline_reused,
         seconds: t0.elapsed().as_secs_f64(),

@@ -205,22 +205,31 @@ fn clutter_section(report: &Report) -> String {
             let _ = write!(
                 s,
                 "Segmentation (`{}`, every true instance with enough visible pixels), on the \
-                 scenes as drawn and on the same scenes with the projector's shadows and the \
+                 scenes as drawn, on the same scenes with the projector's shadows and the \
                  registration's holes in every one (the bands without a return of real \
-                 structured-light maps, `docs/decisions.md`):\n\n\
-                 | sensor | images | true instances | target found | recall | matched IoU (mean) | \
+                 structured-light maps, `docs/decisions.md`), and on the same scenes seen \
+                 through other cameras (the network's input sized from each, `docs/decisions.md`, \
+                 \"Any camera\"):\n\n\
+                 | sensor or camera | images | true instances | target found | recall | matched IoU (mean) | \
                  over-segmented | under-segmented | predictions per image |\n\
                  |---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
                 crate::bench::scenes::CLUTTER_SEG_MODEL,
             );
             s.push_str(&instance_row("as drawn", v));
-            match &c.segmentation_shadowed {
-                Ok(w) => s.push_str(&instance_row("+ shadows", w)),
-                Err(why) => {
-                    let _ = writeln!(
-                        s,
-                        "| + shadows | not measured ({why}) | – | – | – | – | – | – | – |"
-                    );
+            let rows = std::iter::once(("+ shadows", &c.segmentation_shadowed)).chain(
+                c.segmentation_cameras
+                    .iter()
+                    .map(|(label, r)| (label.as_str(), r)),
+            );
+            for (label, result) in rows {
+                match result {
+                    Ok(w) => s.push_str(&instance_row(label, w)),
+                    Err(why) => {
+                        let _ = writeln!(
+                            s,
+                            "| {label} | not measured ({why}) | – | – | – | – | – | – | – |"
+                        );
+                    }
                 }
             }
             s.push('\n');
@@ -1339,6 +1348,17 @@ mod tests {
                 "target_misses": {"not_object": 1, "merged": 1, "split": 0, "borderline": 0},
                 "predictions_per_image": 6.0,
             })),
+            segmentation_cameras: vec![
+                (
+                    "16:9, 1280×720".into(),
+                    Ok(serde_json::json!({
+                        "images": 2, "true_instances": 8, "target_found_rate": 1.0, "recall": 0.25,
+                        "matched_iou_mean": 0.6, "over_segmented": 5, "under_segmented": 6,
+                        "predictions_per_image": 7.0,
+                    })),
+                ),
+                ("wide".into(), Err("no scene".into())),
+            ],
             pipeline: Err("`incontext eval --cases` is not available".into()),
             pipeline_reused: false,
             seconds: 1.0,
@@ -1379,6 +1399,14 @@ mod tests {
             "{md}"
         );
         assert!(
+            md.contains("| 16:9, 1280×720 | 2 | 8 | 1.000 | 0.250 | 0.600 | 5 | 6 | 7.0 |"),
+            "{md}"
+        );
+        assert!(
+            md.contains("| wide | not measured (no scene) | – |"),
+            "{md}"
+        );
+        assert!(
             md.contains(
                 "Targets missed (as drawn / + shadows): 1 / 1 not seen as an object (under half"
             ),
@@ -1406,6 +1434,7 @@ mod tests {
             dir: "clutter-data".into(),
             segmentation: Err("absent".into()),
             segmentation_shadowed: Err("absent".into()),
+            segmentation_cameras: vec![("16:9".into(), Err("absent".into()))],
             pipeline: Ok(pipeline.clone()),
             pipeline_reused: reused,
             seconds: 1.0,
