@@ -10,7 +10,12 @@
 //! output (`ic_eval::Calibration::fit`). Prints how honest the verdict `ok` (calibrated
 //! confidence ≥ 0.9, score ≥ 0.05) is under the lines' own confidence and under the new one
 //! (in-sample), and with two files or more the same for each file under a fit on the others
-//! (held out); with `--reliability FILE.svg|png` it draws both reliability diagrams.
+//! (held out); with `--reliability FILE.svg|png` it draws both reliability diagrams. With
+//! `--replay` it also replays `register`'s search on every target of each file under each
+//! confidence (each file held out when there are several): the target's instances in rank
+//! order, the first `--tries`, stopping at the first `ok`, the best by verdict, confidence and
+//! score kept — how many targets the choice gets right, against how many have a right pose
+//! among the tried instances (`docs/decisions.md`'s tables of the confidence's features).
 
 use std::path::{Path, PathBuf};
 
@@ -46,12 +51,23 @@ pub struct FitClutterCalibrationArgs {
     /// Draw the reliability diagram of the lines' confidence and of the new one (.svg or .png).
     #[arg(long)]
     pub reliability: Option<PathBuf>,
+    /// Also replay `register`'s search on every target under each confidence (see the module
+    /// documentation); the lines must carry `scene_id`, `im_id`, `obj_id` and the instance's
+    /// `rank`, as `eval --candidates` writes them.
+    #[arg(long)]
+    pub replay: bool,
+    /// With `--replay`: the instances `register` tries (its `--instance-tries`).
+    #[arg(long, default_value_t = 8)]
+    pub tries: usize,
 }
 
 /// The verdict `ok` needs this calibrated confidence (incontext's `VERIFIED_OK`) …
 const OK: f64 = 0.9;
 /// … and this raw render-and-compare score (incontext's `VERIFIED_FOUND`).
 const FOUND: f64 = 0.05;
+
+/// The target a line was registered for: its scene, image and object ids.
+type TargetKey = (u64, u64, u64);
 
 /// One registered instance.
 #[derive(Clone, Copy)]
@@ -60,6 +76,9 @@ struct Sample {
     /// The confidence the line was given.
     confidence: f64,
     right: bool,
+    /// The target it was registered for (scene, image, object) and its rank among the
+    /// target's instances, when the line says them.
+    target: Option<(TargetKey, u64)>,
 }
 
 impl Sample {
@@ -85,12 +104,23 @@ fn read_samples(path: &Path) -> Result<Vec<Sample>> {
         let confidence = v["confidence"]
             .as_f64()
             .with_context(|| format!("{}: no number \"confidence\"", at()))?;
+        let id = |k: &str| v[k].as_u64();
+        let target = match (
+            id("scene_id"),
+            id("im_id"),
+            id("obj_id"),
+            v["instance"]["rank"].as_u64(),
+        ) {
+            (Some(s), Some(i), Some(o), Some(r)) => Some(((s, i, o), r)),
+            _ => None,
+        };
         let features: ClutterFeatures = serde_json::from_value(v)
             .with_context(|| format!("{}: not a registration's numbers", at()))?;
         out.push(Sample {
             features,
             confidence,
             right,
+            target,
         });
     }
     Ok(out)
@@ -136,6 +166,95 @@ fn ok_counts(samples: &[Sample], confidence: impl Fn(&Sample) -> f64) -> (usize,
     )
 }
 
+/// `register`'s search replayed on every target of one file (see the module documentation).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct Replay {
+    targets: usize,
+    /// Targets whose kept pose is right.
+    right: usize,
+    /// Targets with a right pose among the tried instances.
+    right_tried: usize,
+    /// Targets whose kept pose is `ok`, and right among them.
+    ok: usize,
+    ok_right: usize,
+}
+
+impl std::ops::AddAssign for Replay {
+    fn add_assign(&mut self, o: Replay) {
+        self.targets += o.targets;
+        self.right += o.right;
+        self.right_tried += o.right_tried;
+        self.ok += o.ok;
+        self.ok_right += o.ok_right;
+    }
+}
+
+/// Replays the search on `samples` (one file's lines) with `confidence`: per target, its
+/// instances by rank, the first `tries`, stopping at the first `ok` (confidence ≥ [`OK`],
+/// score ≥ [`FOUND`]); the kept pose is the tried one with the highest (verdict, confidence,
+/// score), the first on a tie, as `register` sorts. Errors on a line without its target.
+fn replay(
+    samples: &[Sample],
+    tries: usize,
+    confidence: impl Fn(&Sample) -> f64,
+    file: &Path,
+) -> Result<Replay> {
+    let mut targets: std::collections::BTreeMap<TargetKey, Vec<(u64, &Sample)>> =
+        Default::default();
+    for s in samples {
+        let (key, rank) = s.target.with_context(|| {
+            format!(
+                "{}: a line without scene_id, im_id, obj_id and instance.rank cannot be replayed",
+                file.display()
+            )
+        })?;
+        targets.entry(key).or_default().push((rank, s));
+    }
+    let mut out = Replay::default();
+    for (_, mut list) in targets {
+        list.sort_by_key(|(rank, _)| *rank);
+        let mut best: Option<(u8, f64, f64, bool)> = None;
+        let mut right_tried = false;
+        for (_, s) in list.iter().take(tries.max(1)) {
+            let c = confidence(s);
+            let verdict = if s.score() < FOUND {
+                0
+            } else if c >= OK {
+                2
+            } else {
+                1
+            };
+            right_tried |= s.right;
+            let better = best.is_none_or(|(v, bc, bs, _)| {
+                (verdict, c, s.score())
+                    .partial_cmp(&(v, bc, bs))
+                    .is_some_and(|o| o.is_gt())
+            });
+            if better {
+                best = Some((verdict, c, s.score(), s.right));
+            }
+            if verdict == 2 {
+                break;
+            }
+        }
+        out.targets += 1;
+        out.right_tried += usize::from(right_tried);
+        if let Some((verdict, _, _, right)) = best {
+            out.right += usize::from(right);
+            out.ok += usize::from(verdict == 2);
+            out.ok_right += usize::from(verdict == 2 && right);
+        }
+    }
+    Ok(out)
+}
+
+fn report_replay(name: &str, r: Replay) {
+    println!(
+        "{name}: replayed search right on {} of {} targets (a right pose among the tried: {}), ok {} (right {})",
+        r.right, r.targets, r.right_tried, r.ok, r.ok_right
+    )
+}
+
 fn report(name: &str, n: usize, (ok, right_ok, right): (usize, usize, usize)) {
     println!(
         "{name}: ok {ok} of {n}, right among ok {right_ok} (precision {:.3}), ok among right {:.3}",
@@ -158,6 +277,14 @@ pub fn run(args: FitClutterCalibrationArgs) -> Result<()> {
     let after = ok_counts(&samples, |s| c.apply(&s.features));
     report("the lines' confidence", samples.len(), before);
     report("clutter confidence (in-sample)", samples.len(), after);
+    if args.replay && per_file.len() == 1 {
+        let file = &args.candidates[0];
+        let lines = replay(&samples, args.tries, |s| s.confidence, file)?;
+        report_replay("the lines' confidence", lines);
+        let fitted = replay(&samples, args.tries, |s| c.apply(&s.features), file)?;
+        report_replay("clutter confidence (in-sample)", fitted);
+    }
+    let (mut lines_total, mut held_total) = (Replay::default(), Replay::default());
     if per_file.len() > 1 {
         for (i, held) in per_file.iter().enumerate() {
             let others: Vec<Sample> = per_file
@@ -178,6 +305,19 @@ pub fn run(args: FitClutterCalibrationArgs) -> Result<()> {
                 held.len(),
                 ok_counts(held, |s| h.apply(&s.features)),
             );
+            if args.replay {
+                let file = &args.candidates[i];
+                let lines = replay(held, args.tries, |s| s.confidence, file)?;
+                let fitted = replay(held, args.tries, |s| h.apply(&s.features), file)?;
+                report_replay(&format!("{name}, the lines' confidence"), lines);
+                report_replay(&format!("{name}, held out"), fitted);
+                lines_total += lines;
+                held_total += fitted;
+            }
+        }
+        if args.replay {
+            report_replay("every file, the lines' confidence", lines_total);
+            report_replay("every file, held out", held_total);
         }
     }
     let m = &c.evidence_model;
@@ -281,6 +421,8 @@ mod tests {
             l2: 1.0,
             fitted_on: vec![],
             reliability: None,
+            replay: false,
+            tries: 8,
         })
         .unwrap();
         let back = ClutterConfidence::from_json(&std::fs::read_to_string(&out).unwrap()).unwrap();
@@ -308,6 +450,7 @@ mod tests {
             },
             confidence,
             right,
+            target: None,
         };
         let s = [
             sample(0.9, 0.95, true),
@@ -315,5 +458,58 @@ mod tests {
             sample(0.9, 0.5, false),
         ];
         assert_eq!(ok_counts(&s, |x| x.confidence), (1, 1, 2));
+    }
+
+    #[test]
+    fn the_replay_stops_at_the_first_ok_keeps_the_best_tried_and_needs_the_target() {
+        // (target, rank, confidence, score, right)
+        let sample = |t: u64, rank: u64, confidence: f64, score: f64, right: bool| Sample {
+            features: ClutterFeatures {
+                verification: ic_eval::clutter::CropScore {
+                    score,
+                    ..Default::default()
+                },
+                ..Default::default()
+            },
+            confidence,
+            right,
+            target: Some(((t, 0, 1), rank)),
+        };
+        let s = [
+            // Target 0: rank 1 is ok and wrong, so the right rank 2 is never tried.
+            sample(0, 2, 0.95, 0.9, true),
+            sample(0, 0, 0.5, 0.9, false),
+            sample(0, 1, 0.92, 0.9, false),
+            // Target 1: nothing ok; the best confidence (rank 1, right) is kept.
+            sample(1, 0, 0.3, 0.9, false),
+            sample(1, 1, 0.6, 0.5, true),
+            // Target 2: a confident pose with too low a score is not ok; the right pose at
+            // rank 3 lies beyond two tries.
+            sample(2, 0, 0.95, 0.01, false),
+            sample(2, 1, 0.2, 0.9, false),
+            sample(2, 3, 0.99, 0.9, true),
+        ];
+        let file = Path::new("c.jsonl");
+        let r = replay(&s, 2, |x| x.confidence, file).unwrap();
+        assert_eq!(
+            r,
+            Replay {
+                targets: 3,
+                right: 1,
+                right_tried: 1,
+                ok: 1,
+                ok_right: 0
+            }
+        );
+        // With three tries target 2 reaches its right, ok pose.
+        let r = replay(&s, 3, |x| x.confidence, file).unwrap();
+        assert_eq!((r.right, r.right_tried, r.ok, r.ok_right), (2, 2, 2, 1));
+        let mut lost = s;
+        lost[4].target = None;
+        let e = format!(
+            "{:#}",
+            replay(&lost, 2, |x| x.confidence, file).unwrap_err()
+        );
+        assert!(e.contains("c.jsonl") && e.contains("instance.rank"), "{e}");
     }
 }
