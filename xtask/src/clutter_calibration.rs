@@ -189,16 +189,14 @@ impl std::ops::AddAssign for Replay {
     }
 }
 
-/// Replays the search on `samples` (one file's lines) with `confidence` (a sample's
-/// confidence and what breaks its ties): per target, its instances by rank, the first `tries`,
-/// stopping at the first `ok` (confidence ≥ [`OK`], score ≥ [`FOUND`]); the kept pose is the
-/// tried one with the highest (verdict, confidence, tie-break, score), the first on a tie, as
-/// `register` sorts (its tie-break: the clutter confidence's model output). Errors on a line
-/// without its target.
+/// Replays the search on `samples` (one file's lines) with `confidence`: per target, its
+/// instances by rank, the first `tries`, stopping at the first `ok` (confidence ≥ [`OK`],
+/// score ≥ [`FOUND`]); the kept pose is the tried one with the highest (verdict, confidence,
+/// score), the first on a tie, as `register` sorts. Errors on a line without its target.
 fn replay(
     samples: &[Sample],
     tries: usize,
-    confidence: impl Fn(&Sample) -> (f64, f64),
+    confidence: impl Fn(&Sample) -> f64,
     file: &Path,
 ) -> Result<Replay> {
     let mut targets: std::collections::BTreeMap<TargetKey, Vec<(u64, &Sample)>> =
@@ -215,10 +213,10 @@ fn replay(
     let mut out = Replay::default();
     for (_, mut list) in targets {
         list.sort_by_key(|(rank, _)| *rank);
-        let mut best: Option<((u8, f64, f64, f64), bool)> = None;
+        let mut best: Option<(u8, f64, f64, bool)> = None;
         let mut right_tried = false;
         for (_, s) in list.iter().take(tries.max(1)) {
-            let (c, tie) = confidence(s);
+            let c = confidence(s);
             let verdict = if s.score() < FOUND {
                 0
             } else if c >= OK {
@@ -227,10 +225,13 @@ fn replay(
                 1
             };
             right_tried |= s.right;
-            let key = (verdict, c, tie, s.score());
-            let better = best.is_none_or(|(b, _)| key.partial_cmp(&b).is_some_and(|o| o.is_gt()));
+            let better = best.is_none_or(|(v, bc, bs, _)| {
+                (verdict, c, s.score())
+                    .partial_cmp(&(v, bc, bs))
+                    .is_some_and(|o| o.is_gt())
+            });
             if better {
-                best = Some((key, s.right));
+                best = Some((verdict, c, s.score(), s.right));
             }
             if verdict == 2 {
                 break;
@@ -238,25 +239,13 @@ fn replay(
         }
         out.targets += 1;
         out.right_tried += usize::from(right_tried);
-        if let Some(((verdict, ..), right)) = best {
+        if let Some((verdict, _, _, right)) = best {
             out.right += usize::from(right);
             out.ok += usize::from(verdict == 2);
             out.ok_right += usize::from(verdict == 2 && right);
         }
     }
     Ok(out)
-}
-
-/// A line's own confidence; its ties broken by the score alone (the lines carry no model
-/// output).
-fn lines_key(s: &Sample) -> (f64, f64) {
-    (s.confidence, f64::NEG_INFINITY)
-}
-
-/// The confidence `c` gives a sample; its ties broken by `c`'s model output, as `register`
-/// breaks them.
-fn fitted_key(c: &ClutterConfidence, s: &Sample) -> (f64, f64) {
-    (c.apply(&s.features), c.evidence(&s.features))
 }
 
 fn report_replay(name: &str, r: Replay) {
@@ -290,9 +279,9 @@ pub fn run(args: FitClutterCalibrationArgs) -> Result<()> {
     report("clutter confidence (in-sample)", samples.len(), after);
     if args.replay && per_file.len() == 1 {
         let file = &args.candidates[0];
-        let lines = replay(&samples, args.tries, lines_key, file)?;
+        let lines = replay(&samples, args.tries, |s| s.confidence, file)?;
         report_replay("the lines' confidence", lines);
-        let fitted = replay(&samples, args.tries, |s| fitted_key(&c, s), file)?;
+        let fitted = replay(&samples, args.tries, |s| c.apply(&s.features), file)?;
         report_replay("clutter confidence (in-sample)", fitted);
     }
     let (mut lines_total, mut held_total) = (Replay::default(), Replay::default());
@@ -318,8 +307,8 @@ pub fn run(args: FitClutterCalibrationArgs) -> Result<()> {
             );
             if args.replay {
                 let file = &args.candidates[i];
-                let lines = replay(held, args.tries, lines_key, file)?;
-                let fitted = replay(held, args.tries, |s| fitted_key(&h, s), file)?;
+                let lines = replay(held, args.tries, |s| s.confidence, file)?;
+                let fitted = replay(held, args.tries, |s| h.apply(&s.features), file)?;
                 report_replay(&format!("{name}, the lines' confidence"), lines);
                 report_replay(&format!("{name}, held out"), fitted);
                 lines_total += lines;
@@ -501,7 +490,7 @@ mod tests {
             sample(2, 3, 0.99, 0.9, true),
         ];
         let file = Path::new("c.jsonl");
-        let r = replay(&s, 2, lines_key, file).unwrap();
+        let r = replay(&s, 2, |x| x.confidence, file).unwrap();
         assert_eq!(
             r,
             Replay {
@@ -513,26 +502,14 @@ mod tests {
             }
         );
         // With three tries target 2 reaches its right, ok pose.
-        let r = replay(&s, 3, lines_key, file).unwrap();
+        let r = replay(&s, 3, |x| x.confidence, file).unwrap();
         assert_eq!((r.right, r.right_tried, r.ok, r.ok_right), (2, 2, 2, 1));
-        // Equal confidences (target 1's two instances at 0.6): the tie-break decides before
-        // the score. A lower tie-break for rank 0 (score 0.9, wrong) keeps rank 1 (score 0.5,
-        // right); a higher one keeps rank 0, as the score alone would.
-        let mut tied = s;
-        tied[3].confidence = 0.6;
-        let with = |t: f64| {
-            move |x: &Sample| {
-                let first = x.target.is_some_and(|(k, r)| k.0 == 1 && r == 0);
-                (x.confidence, if first { t } else { 0.5 })
-            }
-        };
-        let r = replay(&tied, 2, with(0.4), file).unwrap();
-        assert_eq!(r.right, 1, "the right rank 1 kept: {r:?}");
-        let r = replay(&tied, 2, with(0.6), file).unwrap();
-        assert_eq!(r.right, 0, "the wrong rank 0 kept: {r:?}");
         let mut lost = s;
         lost[4].target = None;
-        let e = format!("{:#}", replay(&lost, 2, lines_key, file).unwrap_err());
+        let e = format!(
+            "{:#}",
+            replay(&lost, 2, |x| x.confidence, file).unwrap_err()
+        );
         assert!(e.contains("c.jsonl") && e.contains("instance.rank"), "{e}");
     }
 }

@@ -941,38 +941,6 @@ struct AllEntry {
     consistent: bool,
 }
 
-/// Sorts registrations best first: the verdict (ok, uncertain, not found), then the
-/// confidence, then — the clutter confidence's isotonic calibration maps whole ranges of its
-/// model's output to one value — that model's output for the registrations it calibrated,
-/// then the raw render-and-compare score (`docs/decisions.md`, "A confidence in clutter from
-/// several numbers").
-fn sort_best_first(done: &mut [Registration]) {
-    let key = |r: &Registration| {
-        let verdict = match r.verdict {
-            Verdict::Ok => 2,
-            Verdict::Uncertain => 1,
-            Verdict::NotFound => 0,
-        };
-        let model = match (r.calibration, clutter_features(r)) {
-            (CalibrationUsed::Segmentation, Some(f)) => clutter_confidence().evidence(&f),
-            _ => f64::NEG_INFINITY,
-        };
-        (
-            verdict,
-            r.confidence,
-            model,
-            r.verification.map_or(r.confidence, |v| v.score),
-        )
-    };
-    done.sort_by(|a, b| {
-        let (ka, kb) = (key(a), key(b));
-        kb.0.cmp(&ka.0)
-            .then(kb.1.total_cmp(&ka.1))
-            .then(kb.2.total_cmp(&ka.2))
-            .then(kb.3.total_cmp(&ka.3))
-    });
-}
-
 /// Which registrations of the `--all` search (best first) it returns, before poses of the
 /// same object are merged: every `ok` one, and every `uncertain` one whose confidence reaches
 /// `min_confidence` and whose whole projection is consistent with the depth map; when there
@@ -2126,7 +2094,26 @@ impl Pipeline {
             return Err(first_error
                 .unwrap_or_else(|| PipelineError::not_found("no instance could be registered")));
         }
-        sort_best_first(&mut done);
+        // Best first: the verdict (ok, uncertain, not found), then the confidence, then the
+        // raw render-and-compare score.
+        let key = |r: &Registration| {
+            let verdict = match r.verdict {
+                Verdict::Ok => 2,
+                Verdict::Uncertain => 1,
+                Verdict::NotFound => 0,
+            };
+            (
+                verdict,
+                r.confidence,
+                r.verification.map_or(r.confidence, |v| v.score),
+            )
+        };
+        done.sort_by(|a, b| {
+            let (ka, kb) = (key(a), key(b));
+            kb.0.cmp(&ka.0)
+                .then(kb.1.total_cmp(&ka.1))
+                .then(kb.2.total_cmp(&ka.2))
+        });
         if search == InstanceSearch::AllOk {
             // Every `ok` instance (and, with `all_min_confidence`, every consistent `uncertain`
             // one that reaches it), one per object: `all_ok_choice`.
@@ -3105,90 +3092,6 @@ mod tests {
             assert!((0.0..=1.0).contains(&p) && p >= last);
             last = p;
         }
-    }
-
-    /// A verified registration with these numbers (the rest empty).
-    fn scored(
-        confidence: f64,
-        calibration: CalibrationUsed,
-        evidence: f64,
-        agreement: f64,
-        score: f64,
-    ) -> Registration {
-        Registration {
-            pose: Pose::IDENTITY,
-            pose_normalised: Pose::IDENTITY,
-            one_shot_normalised: Pose::IDENTITY,
-            confidence,
-            calibration,
-            verdict: Verdict::Uncertain,
-            verification: Some(crate::verify::Score {
-                score,
-                coverage: score,
-                agreement,
-                violation: 0.0,
-                visible_agreement: agreement,
-                misfit: 0.2,
-            }),
-            verified: Vec::new(),
-            rival_score: Some(0.0),
-            evidence: Some(evidence),
-            hypotheses_made: 1,
-            hypotheses_verified: 1,
-            segmentation: None,
-            instance: None,
-            object_points: 300,
-            object_voxels: 300,
-            inlier_count: 0,
-            assignment_confidence: 0.0,
-            icp: None,
-            whole_view: None,
-            seconds: StageSeconds::default(),
-            observed: Vec::new(),
-            mask: None,
-        }
-    }
-
-    #[test]
-    fn equal_clutter_confidences_are_told_apart_by_the_model_before_the_score() {
-        // Two clutter registrations the calibration gives one confidence: a well-supported
-        // fit, and a small piece whose crop a pose explains fully but with little evidence.
-        let supported = scored(0.87, CalibrationUsed::Segmentation, 0.9, 0.95, 0.8);
-        let piece = scored(0.87, CalibrationUsed::Segmentation, 0.4, 0.6, 1.0);
-        let model = |r: &Registration| clutter_confidence().evidence(&clutter_features(r).unwrap());
-        assert!(model(&supported) > model(&piece));
-        let mut done = vec![piece.clone(), supported.clone()];
-        sort_best_first(&mut done);
-        assert_eq!(
-            done[0].evidence,
-            Some(0.9),
-            "the better-supported fit first"
-        );
-        // Calibrated as single objects there is no model: the score breaks the tie.
-        let object = |r: &Registration| Registration {
-            calibration: CalibrationUsed::Object,
-            ..r.clone()
-        };
-        let mut done = vec![object(&supported), object(&piece)];
-        sort_best_first(&mut done);
-        assert_eq!(done[0].evidence, Some(0.4), "the higher score first");
-        // The verdict and the confidence still come first.
-        let mut ok = piece.clone();
-        ok.verdict = Verdict::Ok;
-        let mut higher = piece;
-        higher.confidence = 0.88;
-        let mut done = vec![supported.clone(), higher, ok];
-        sort_best_first(&mut done);
-        assert_eq!(
-            done.iter()
-                .map(|r| (r.verdict, r.confidence))
-                .collect::<Vec<_>>(),
-            vec![
-                (Verdict::Ok, 0.87),
-                (Verdict::Uncertain, 0.88),
-                (Verdict::Uncertain, 0.87)
-            ]
-        );
     }
 
     #[test]
