@@ -466,7 +466,9 @@ pub struct EvalArgs {
     pub render_size: Option<Vec<u32>>,
     /// Clutter scenes: see them through this camera instead (pixels: e.g. `1280 720 640 640`
     /// for a RealSense-like 16:9 depth camera; the principal point at the image's centre),
-    /// the scenes' geometry kept: what another camera than the training one costs.
+    /// the scenes' geometry kept: what another camera than the training one costs. The
+    /// network runs at the input sized for it (`ic_seg::Segmenter::input_size_for`); the
+    /// oracles (`--oracle`, `--oracle-maps`) at the network's own size.
     #[arg(long, num_args = 4, value_names = ["WIDTH", "HEIGHT", "FX", "FY"], conflicts_with = "render_size")]
     pub camera: Option<Vec<f64>>,
     /// Clutter scenes: the probability that a scene's sensor casts the projector's shadows,
