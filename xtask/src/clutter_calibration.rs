@@ -21,6 +21,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use ic_eval::calibration::{VERIFIED_FOUND, VERIFIED_OK};
 use ic_eval::{
     Calibration, ClutterConfidence, ClutterFeatures, Logistic, LogisticOptions, reliability_bins,
 };
@@ -61,10 +62,18 @@ pub struct FitClutterCalibrationArgs {
     pub tries: usize,
 }
 
-/// The verdict `ok` needs this calibrated confidence (incontext's `VERIFIED_OK`) …
-const OK: f64 = 0.9;
-/// … and this raw render-and-compare score (incontext's `VERIFIED_FOUND`).
-const FOUND: f64 = 0.05;
+/// `incontext`'s verdict of a verified pose of calibrated `confidence` and raw
+/// render-and-compare `score`, at its default thresholds: 0 not found (score below
+/// [`VERIFIED_FOUND`]), 2 `ok` (confidence ≥ [`VERIFIED_OK`]), else 1 uncertain.
+fn verdict(confidence: f64, score: f64) -> u8 {
+    if score < VERIFIED_FOUND {
+        0
+    } else if confidence >= VERIFIED_OK {
+        2
+    } else {
+        1
+    }
+}
 
 /// The target a line was registered for: its scene, image and object ids.
 type TargetKey = (u64, u64, u64);
@@ -152,12 +161,11 @@ fn fit(samples: &[Sample], features: &[String], l2: f64) -> Result<ClutterConfid
     })
 }
 
-/// (`ok` count, right among them, right overall) when `ok` = confidence ≥ [`OK`] and score ≥
-/// [`FOUND`].
+/// (`ok` count, right among them, right overall) under `confidence` ([`verdict`] 2).
 fn ok_counts(samples: &[Sample], confidence: impl Fn(&Sample) -> f64) -> (usize, usize, usize) {
     let ok: Vec<&Sample> = samples
         .iter()
-        .filter(|s| confidence(s) >= OK && s.score() >= FOUND)
+        .filter(|s| verdict(confidence(s), s.score()) == 2)
         .collect();
     (
         ok.len(),
@@ -190,8 +198,8 @@ impl std::ops::AddAssign for Replay {
 }
 
 /// Replays the search on `samples` (one file's lines) with `confidence`: per target, its
-/// instances by rank, the first `tries`, stopping at the first `ok` (confidence ≥ [`OK`],
-/// score ≥ [`FOUND`]); the kept pose is the tried one with the highest (verdict, confidence,
+/// instances by rank, the first `tries`, stopping at the first `ok` ([`verdict`]); the kept
+/// pose is the tried one with the highest (verdict, confidence,
 /// score), the first on a tie, as `register` sorts. Errors on a line without its target.
 fn replay(
     samples: &[Sample],
@@ -217,23 +225,17 @@ fn replay(
         let mut right_tried = false;
         for (_, s) in list.iter().take(tries.max(1)) {
             let c = confidence(s);
-            let verdict = if s.score() < FOUND {
-                0
-            } else if c >= OK {
-                2
-            } else {
-                1
-            };
+            let v = verdict(c, s.score());
             right_tried |= s.right;
-            let better = best.is_none_or(|(v, bc, bs, _)| {
-                (verdict, c, s.score())
-                    .partial_cmp(&(v, bc, bs))
+            let better = best.is_none_or(|(bv, bc, bs, _)| {
+                (v, c, s.score())
+                    .partial_cmp(&(bv, bc, bs))
                     .is_some_and(|o| o.is_gt())
             });
             if better {
-                best = Some((verdict, c, s.score(), s.right));
+                best = Some((v, c, s.score(), s.right));
             }
-            if verdict == 2 {
+            if v == 2 {
                 break;
             }
         }
@@ -438,9 +440,14 @@ mod tests {
         assert!(unknown.contains("colour"), "{unknown}");
     }
 
-    #[test]
-    fn ok_counts_need_both_the_confidence_and_the_score() {
-        let sample = |score: f64, confidence: f64, right: bool| Sample {
+    /// A sample of this raw score, line confidence and rightness, registered for `target`.
+    fn sample(
+        score: f64,
+        confidence: f64,
+        right: bool,
+        target: Option<(TargetKey, u64)>,
+    ) -> Sample {
+        Sample {
             features: ClutterFeatures {
                 verification: ic_eval::clutter::CropScore {
                     score,
@@ -450,12 +457,16 @@ mod tests {
             },
             confidence,
             right,
-            target: None,
-        };
+            target,
+        }
+    }
+
+    #[test]
+    fn ok_counts_need_both_the_confidence_and_the_score() {
         let s = [
-            sample(0.9, 0.95, true),
-            sample(0.01, 0.95, true),
-            sample(0.9, 0.5, false),
+            sample(0.9, 0.95, true, None),
+            sample(0.01, 0.95, true, None),
+            sample(0.9, 0.5, false, None),
         ];
         assert_eq!(ok_counts(&s, |x| x.confidence), (1, 1, 2));
     }
@@ -463,17 +474,8 @@ mod tests {
     #[test]
     fn the_replay_stops_at_the_first_ok_keeps_the_best_tried_and_needs_the_target() {
         // (target, rank, confidence, score, right)
-        let sample = |t: u64, rank: u64, confidence: f64, score: f64, right: bool| Sample {
-            features: ClutterFeatures {
-                verification: ic_eval::clutter::CropScore {
-                    score,
-                    ..Default::default()
-                },
-                ..Default::default()
-            },
-            confidence,
-            right,
-            target: Some(((t, 0, 1), rank)),
+        let sample = |t: u64, rank: u64, confidence: f64, score: f64, right: bool| {
+            sample(score, confidence, right, Some(((t, 0, 1), rank)))
         };
         let s = [
             // Target 0: rank 1 is ok and wrong, so the right rank 2 is never tried.

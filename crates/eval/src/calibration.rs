@@ -18,6 +18,16 @@ use serde::{Deserialize, Serialize};
 
 use crate::EvalError;
 
+/// The calibrated confidence (the probability that the pose is right) from which
+/// `incontext`'s verified pose is `ok`: its `VERIFIED_OK`, and what `cargo xtask
+/// fit-clutter-calibration` counts as `ok` (`docs/decisions.md`).
+pub const VERIFIED_OK: f64 = 0.9;
+
+/// The raw render-and-compare score below which `incontext`'s verified pose counts as not
+/// found (the model at its best pose explains almost none of the object's depth): its
+/// `VERIFIED_FOUND`, and what `cargo xtask fit-clutter-calibration` replays.
+pub const VERIFIED_FOUND: f64 = 0.05;
+
 /// A monotone non-decreasing map from a score to a probability, by linear interpolation
 /// between `knots` (score, probability), constant beyond the first and last knot.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

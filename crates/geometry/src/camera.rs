@@ -65,9 +65,15 @@ impl Intrinsics {
             )));
         }
         let f = 0.5 * height as f64 / (0.5 * fov_y_deg.to_radians()).tan();
+        Self::centred(width, height, f, f)
+    }
+
+    /// Checked constructor ([`Intrinsics::new`]) with the principal point at the image's
+    /// centre: `cx = (width − 1) / 2`, `cy = (height − 1) / 2` (pixel centres at integers).
+    pub fn centred(width: u32, height: u32, fx: f64, fy: f64) -> Result<Self, GeometryError> {
         Self::new(
-            f,
-            f,
+            fx,
+            fy,
             (width as f64 - 1.0) / 2.0,
             (height as f64 - 1.0) / 2.0,
             width,

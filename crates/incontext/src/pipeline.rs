@@ -160,12 +160,14 @@ pub const CONFIDENCE_OK: f64 = 0.6;
 pub const CONFIDENCE_FOUND: f64 = 0.25;
 
 /// The calibrated confidence (the probability that the pose is right, see
-/// [`verified_calibration`]) from which a verified pose is `ok` (`docs/decisions.md`).
-pub const VERIFIED_OK: f64 = 0.9;
+/// [`verified_calibration`]) from which a verified pose is `ok` (`docs/decisions.md`). One
+/// value with the calibration fits' ([`ic_eval::calibration::VERIFIED_OK`]).
+pub const VERIFIED_OK: f64 = ic_eval::calibration::VERIFIED_OK;
 
 /// The raw render-and-compare score below which a verified pose counts as not found: the
-/// model at its best pose explains almost none of the object's depth.
-pub const VERIFIED_FOUND: f64 = 0.05;
+/// model at its best pose explains almost none of the object's depth. One value with the
+/// calibration fits' ([`ic_eval::calibration::VERIFIED_FOUND`]).
+pub const VERIFIED_FOUND: f64 = ic_eval::calibration::VERIFIED_FOUND;
 
 /// The isotonic calibration of a verified pose's [`evidence`],
 /// `models/verify-calibration.json` (fitted by `cargo xtask verify-report --fit-calibration` on

@@ -522,12 +522,6 @@ where
     Ok(())
 }
 
-// ---------------------------------------------------------------------------------------
-// Stopping: Ctrl-C / SIGTERM set a flag that the loop reads after every iteration.
-
-static STOP: AtomicBool = AtomicBool::new(false);
-
-/// The process-wide stop flag that [`install_signal_handlers`] and [`request_stop`] set.
 /// The camera of a `--camera WIDTH HEIGHT FX FY` flag (pixels; the principal point at the
 /// image's centre), checked: whole sizes of 1–8192 pixels, positive finite focal lengths.
 pub fn camera_arg(values: &[f64]) -> anyhow::Result<ic_geometry::Intrinsics> {
@@ -542,16 +536,17 @@ pub fn camera_arg(values: &[f64]) -> anyhow::Result<ic_geometry::Intrinsics> {
             anyhow::bail!("camera {name} {v} is not a whole number of pixels in 1–8192");
         }
     }
-    Ok(ic_geometry::Intrinsics::new(
-        *fx,
-        *fy,
-        (w - 1.0) / 2.0,
-        (h - 1.0) / 2.0,
-        *w as u32,
-        *h as u32,
+    Ok(ic_geometry::Intrinsics::centred(
+        *w as u32, *h as u32, *fx, *fy,
     )?)
 }
 
+// ---------------------------------------------------------------------------------------
+// Stopping: Ctrl-C / SIGTERM set a flag that the loop reads after every iteration.
+
+static STOP: AtomicBool = AtomicBool::new(false);
+
+/// The process-wide stop flag that [`install_signal_handlers`] and [`request_stop`] set.
 pub fn stop_flag() -> &'static AtomicBool {
     &STOP
 }

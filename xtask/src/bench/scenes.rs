@@ -236,8 +236,8 @@ pub fn clutter(
             let cameras = OTHER_CAMERAS
                 .iter()
                 .map(|&(label, w, h, fx, fy)| {
-                    let k = ic_train::camera_arg(&[w as f64, h as f64, fx, fy])
-                        .map_err(|e| format!("{e:#}"));
+                    let k =
+                        ic_geometry::Intrinsics::centred(w, h, fx, fy).map_err(|e| e.to_string());
                     (label.to_string(), k.and_then(|k| run(false, Some(k))))
                 })
                 .collect();
