@@ -17,7 +17,10 @@ use serde_json::json;
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => return flag_error(e),
+    };
     // SAFETY: first thing in main, before any other thread exists.
     unsafe { ic_pose::tune_candle_cpu_pool() };
     // More compute threads than logical CPUs only slow everything down (and thousands of
@@ -121,6 +124,31 @@ fn main() -> ExitCode {
         }
         Err(_) => ExitCode::from(1),
     }
+}
+
+/// A command line clap refuses: clap's text on stderr and exit code 2 (bad input), and with
+/// `--json` among the arguments also the documented JSON object on stdout, so a caller parsing
+/// stdout gets `{"error", "kind": "input", "exit_code": 2}` for a bad flag as for a bad file.
+/// `--help` and `--version` print as usual and exit 0.
+fn flag_error(e: clap::Error) -> ExitCode {
+    use clap::error::ErrorKind;
+    if matches!(e.kind(), ErrorKind::DisplayHelp | ErrorKind::DisplayVersion) {
+        let _ = e.print();
+        return ExitCode::SUCCESS;
+    }
+    let json = std::env::args_os()
+        .skip(1)
+        .take_while(|a| a != "--")
+        .any(|a| a == "--json");
+    if json {
+        // The first paragraph: clap's "error: …" line(s), without the usage and the tip.
+        let text = e.render().to_string();
+        let first = text.split("\n\n").next().unwrap_or(&text).trim();
+        let message = first.strip_prefix("error: ").unwrap_or(first);
+        out(&json!({"error": message, "kind": "input", "exit_code": 2}).to_string());
+    }
+    let _ = e.print();
+    ExitCode::from(2)
 }
 
 /// Writes a line to stdout; a closed pipe (`| head`) is not an error worth a panic.

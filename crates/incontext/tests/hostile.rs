@@ -258,6 +258,40 @@ fn absurd_thread_counts_are_capped_or_refused() {
 }
 
 #[test]
+fn a_flag_refused_by_the_parser_still_gives_the_json_error_object() {
+    let sc = SmallScene::new();
+    // `--json` before or after the command; a bad value, a missing argument.
+    for extra in [
+        &["--rotations", "7"][..],
+        &["--threads", "0"][..],
+        &["--min-confidence", "x"][..],
+    ] {
+        let args = reg(&sc, &[], &[&["--json"], extra].concat());
+        let o = incontext(&strs(&args));
+        assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+        let v = json_stdout(&o);
+        assert_eq!(v["kind"], "input", "{v}");
+        assert_eq!(v["exit_code"], 2, "{v}");
+        assert!(v["error"].as_str().unwrap().contains(extra[0]), "{v}");
+        assert!(stderr(&o).contains("error:"), "{}", stderr(&o));
+    }
+    let o = incontext(&["--json", "register", "--model", "m.ply"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        json_stdout(&o)["error"]
+            .as_str()
+            .unwrap()
+            .contains("--depth")
+    );
+    // Without --json stdout stays empty; --help is not an error.
+    let o = incontext(&["register", "--rotations", "7"]);
+    assert_eq!((o.status.code(), o.stdout.is_empty()), (Some(2), true));
+    let o = incontext(&["--json", "--help"]);
+    assert_eq!(o.status.code(), Some(0));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("Usage"));
+}
+
+#[test]
 fn outputs_never_replace_links_fifos_or_device_nodes() {
     let sc = SmallScene::new();
     let target = sc.path("precious.json");
