@@ -5,7 +5,8 @@
 //! - `<root>/camera.json`: `fx, fy, cx, cy, width, height, depth_scale`;
 //! - `<scene>/scene_camera.json`: per image `cam_K` (9 numbers, row-major) and `depth_scale`;
 //! - `<scene>/scene_gt.json`: per image a list of `cam_R_m2c` (9, row-major), `cam_t_m2c` (mm),
-//!   `obj_id`;
+//!   `obj_id`; optional when reading (test sets whose ground truth is withheld, e.g. ITODD's:
+//!   their targets are then registered and written, not scored);
 //! - `<scene>/scene_gt_info.json`: `bbox_obj`, `bbox_visib` (`[x, y, w, h]`), `px_count_all`,
 //!   `px_count_valid`, `px_count_visib`, `visib_fract`;
 //! - `<scene>/depth/{im_id:06}.png` (16-bit, `stored × depth_scale = mm`; reading also takes
@@ -16,7 +17,8 @@
 //!   `size_*`), plus `ic_object_ids.json` mapping BOP ids to our corpus ids; the reader takes
 //!   T-LESS's `models_cad/` when there is no `models/` ([`models_folder`]);
 //! - `<root>/test_targets_bop19.json`: what to find in each image (`scene_id`, `im_id`,
-//!   `obj_id`, `inst_count`); read when present, else every annotated object is a target.
+//!   `obj_id`, `inst_count`); read when present, else every annotated object is a target
+//!   (a split without any `scene_gt.json` needs the file).
 //!
 //! Cluttered scenes ([`BopWriter::add_clutter`]) are written in millimetres with every object
 //! annotated, each model at its size in the scene (one object at two sizes is two models).
@@ -517,7 +519,21 @@ struct GtEntry {
 struct SceneData {
     dir: PathBuf,
     camera: HashMap<u32, ([f64; 9], f64)>,
+    /// By image; empty when the scene has no `scene_gt.json`.
     gt: HashMap<u32, Vec<GtEntry>>,
+}
+
+/// One test image's depth map in the normalised units of one object's model, for a target
+/// without ground truth ([`BopDataset::image`]).
+#[derive(Clone, Debug)]
+pub struct BopImage {
+    /// Depth along the camera's z axis, in the model's normalised units (1 unit =
+    /// `normalisation.scale` mm); 0 = no return.
+    pub depth: DepthImage,
+    /// The image's camera (`cam_K` of `scene_camera.json`), in pixels.
+    pub intrinsics: Intrinsics,
+    /// The model's corpus id (`obj_XXXXXX`).
+    pub object_id: String,
 }
 
 /// Options of [`BopDataset::load`].
@@ -591,9 +607,13 @@ fn im_key(k: &str, path: &Path) -> Result<u32, DataError> {
 
 /// Reads a `test_targets_bop19.json`: a list of `{scene_id, im_id, obj_id, inst_count}`; entries
 /// of scenes that are not in the split folder are skipped (the file covers a whole dataset).
+/// A kept entry whose object has no model, or whose image has no camera in its scene's
+/// `scene_camera.json`, is an error naming the file and the entry.
 fn read_targets(
     path: &Path,
     scenes: &BTreeMap<u32, SceneData>,
+    obj_index: &HashMap<u32, usize>,
+    models: &Path,
 ) -> Result<Vec<BopTarget>, DataError> {
     let v = read_json(path)?;
     let list = v
@@ -622,9 +642,31 @@ fn read_targets(
                 format!("[{k}].inst_count: must be ≥ 1"),
             ));
         }
-        if scenes.contains_key(&t.scene_id) {
-            out.push(t);
+        let Some(scene) = scenes.get(&t.scene_id) else {
+            continue;
+        };
+        if !obj_index.contains_key(&t.obj_id) {
+            return Err(DataError::json(
+                path,
+                format!(
+                    "[{k}].obj_id {}: no such model in {} (obj_{:06}.ply)",
+                    t.obj_id,
+                    models.display(),
+                    t.obj_id
+                ),
+            ));
         }
+        if !scene.camera.contains_key(&t.im_id) {
+            return Err(DataError::json(
+                path,
+                format!(
+                    "[{k}]: image {} has no camera in {}",
+                    t.im_id,
+                    scene.dir.join("scene_camera.json").display()
+                ),
+            ));
+        }
+        out.push(t);
     }
     out.sort_by_key(|t| (t.scene_id, t.im_id, t.obj_id));
     out.dedup_by_key(|t| (t.scene_id, t.im_id, t.obj_id));
@@ -659,7 +701,7 @@ impl BopDataset {
             folder: root.clone(),
             message: format!("no models folder (one of {})", MODELS_FOLDERS.join(", ")),
         })?;
-        let corpus = Arc::new(Corpus::bop_models(models, Split::Test, options)?);
+        let corpus = Arc::new(Corpus::bop_models(&models, Split::Test, options)?);
         let obj_index = corpus
             .entries()
             .iter()
@@ -692,7 +734,12 @@ impl BopDataset {
             let cam_path = dir.join("scene_camera.json");
             let gt_path = dir.join("scene_gt.json");
             let cam_json = read_json(&cam_path)?;
-            let gt_json = read_json(&gt_path)?;
+            // A withheld ground truth: the scene's targets are registered, not scored.
+            let gt_json = if gt_path.exists() {
+                read_json(&gt_path)?
+            } else {
+                Value::Object(Default::default())
+            };
             let mut camera = HashMap::new();
             for (k, v) in cam_json
                 .as_object()
@@ -746,16 +793,23 @@ impl BopDataset {
             }
             scenes.insert(scene_id, SceneData { dir, camera, gt });
         }
-        if instances.is_empty() {
+        let targets_path = root.join(TEST_TARGETS_FILE);
+        if scenes.is_empty() || (instances.is_empty() && !targets_path.is_file()) {
             return Err(DataError::EmptySplit {
                 folder: split_dir,
                 split: split.to_string(),
-                detail: "no annotated instance in any scene".into(),
+                detail: if scenes.is_empty() {
+                    "no scene folder".into()
+                } else {
+                    format!(
+                        "no annotated instance in any scene (no scene_gt.json lists one) and no \
+                         {TEST_TARGETS_FILE} at the dataset's root to say what to find"
+                    )
+                },
             });
         }
-        let targets_path = root.join(TEST_TARGETS_FILE);
         let targets = if targets_path.is_file() {
-            read_targets(&targets_path, &scenes)?
+            read_targets(&targets_path, &scenes, &obj_index, &models)?
         } else {
             // Every annotated object of every image, with its instance count.
             let mut counts: BTreeMap<(u32, u32, u32), usize> = BTreeMap::new();
@@ -829,36 +883,36 @@ impl BopDataset {
         self.instances.is_empty()
     }
 
-    /// Instance `i` as a [`RoomSample`] in the normalised units of its model (1 unit =
-    /// the model's `Normalisation::scale` mm): depth, masks (`mask_visib`/, `mask`/; the
-    /// visible mask stands in for a missing full one, an empty mask for a missing visible one),
-    /// pose, boxes, the voxelised scene with object labels, and M model points.
-    pub fn load(&self, i: usize, options: &BopLoadOptions) -> Result<RoomSample, DataError> {
-        let inst = *self.instances.get(i).ok_or_else(|| DataError::Config {
-            field: "instance index",
-            message: format!("{i} is out of range ({} instances)", self.instances.len()),
-        })?;
-        let scene = &self.scenes[&inst.scene_id];
-        let cam_path = scene.dir.join("scene_camera.json");
-        let (kk, depth_scale) = *scene.camera.get(&inst.im_id).ok_or_else(|| {
-            DataError::json(&cam_path, format!("no camera for image {}", inst.im_id))
-        })?;
+    /// Image `im_id` of scene `scene_id` in the normalised units of model `obj_id` (1 unit =
+    /// the model's `Normalisation::scale` mm): its depth map and camera, what registering a
+    /// target needs when the image has no ground truth (e.g. a test set whose annotations are
+    /// withheld). Errors name the file: no such scene or model, no camera for the image, an
+    /// unreadable depth map.
+    pub fn image(&self, scene_id: u32, im_id: u32, obj_id: u32) -> Result<BopImage, DataError> {
+        let scene = self
+            .scenes
+            .get(&scene_id)
+            .ok_or_else(|| DataError::Layout {
+                folder: self.root.join(&self.split),
+                message: format!("no scene {scene_id:06}"),
+            })?;
         let &index = self
             .obj_index
-            .get(&inst.obj_id)
+            .get(&obj_id)
             .ok_or_else(|| DataError::Layout {
                 folder: self.root.join("models"),
-                message: format!(
-                    "obj_id {} of scene {} image {} has no model",
-                    inst.obj_id, inst.scene_id, inst.im_id
-                ),
+                message: format!("obj_id {obj_id} of scene {scene_id} image {im_id} has no model"),
             })?;
         let object = self.corpus.object(index)?;
-        let norm = object.normalisation;
-        let depth_m = read_bop_depth(&scene.dir, inst.im_id, depth_scale)?;
+        let cam_path = scene.dir.join("scene_camera.json");
+        let (kk, depth_scale) = *scene
+            .camera
+            .get(&im_id)
+            .ok_or_else(|| DataError::json(&cam_path, format!("no camera for image {im_id}")))?;
+        let depth_m = read_bop_depth(&scene.dir, im_id, depth_scale)?;
         let (w, h) = (depth_m.width, depth_m.height);
-        let k = Intrinsics::new(kk[0], kk[4], kk[2], kk[5], w, h)?;
-        let to_units = 1000.0 / norm.scale;
+        let intrinsics = Intrinsics::new(kk[0], kk[4], kk[2], kk[5], w, h)?;
+        let to_units = 1000.0 / object.normalisation.scale;
         let depth = Image {
             width: w,
             height: h,
@@ -868,6 +922,31 @@ impl BopDataset {
                 .map(|&z| (z as f64 * to_units) as f32)
                 .collect(),
         };
+        Ok(BopImage {
+            depth,
+            intrinsics,
+            object_id: object.id.clone(),
+        })
+    }
+
+    /// Instance `i` as a [`RoomSample`] in the normalised units of its model (1 unit =
+    /// the model's `Normalisation::scale` mm): depth, masks (`mask_visib`/, `mask`/; the
+    /// visible mask stands in for a missing full one, an empty mask for a missing visible one),
+    /// pose, boxes, the voxelised scene with object labels, and M model points.
+    pub fn load(&self, i: usize, options: &BopLoadOptions) -> Result<RoomSample, DataError> {
+        let inst = *self.instances.get(i).ok_or_else(|| DataError::Config {
+            field: "instance index",
+            message: format!("{i} is out of range ({} instances)", self.instances.len()),
+        })?;
+        let BopImage {
+            depth,
+            intrinsics: k,
+            ..
+        } = self.image(inst.scene_id, inst.im_id, inst.obj_id)?;
+        let scene = &self.scenes[&inst.scene_id];
+        let object = self.corpus.object(self.obj_index[&inst.obj_id])?;
+        let norm = object.normalisation;
+        let (w, h) = (depth.width, depth.height);
         let mask_file = |dir: &str| {
             scene
                 .dir

@@ -13,6 +13,9 @@
 //!   unclaimed true instance nearest it (ADD-S), and an unclaimed one counts as a failure.
 //!   `--gt-mask` registers each true instance on its own visible mask instead. The CSV
 //!   carries every estimate, with the image's total time on each of its rows (BOP's rule).
+//!   A target with no annotated instance (a scene without `scene_gt.json`, as in a test set
+//!   whose ground truth is withheld) is registered and written to the CSV, not scored: its
+//!   `per_image.jsonl` line says `"scored": false`; `--gt-mask` leaves it out.
 //! - `--cases DIR`: the registration cases of `cargo xtask export-cases`. Writes one JSON line
 //!   per case and method, `{"case", "method", "R", "t", "seconds", "ok", "error"}` (the format
 //!   of `benches/peers/open3d_peers.py`), then, when a pose was found, its `confidence` and
@@ -43,7 +46,8 @@ use crate::pipeline::{Object, Pipeline, PipelineError, PipelineOptions, Registra
 pub struct EvalArgs {
     /// A BOP dataset (models/ — T-LESS's models_cad/ when there is no models/ — and SPLIT/, e.g.
     /// `--split test_primesense` for T-LESS) or a `cargo xtask gen-data` folder (noback/,
-    /// room/, clutter/).
+    /// room/, clutter/). Scenes without scene_gt.json (withheld ground truth) are registered
+    /// into the BOP CSV, not scored; their targets come from test_targets_bop19.json.
     #[arg(long)]
     pub dataset: Option<PathBuf>,
     /// A folder of registration cases written by `cargo xtask export-cases`.
@@ -725,10 +729,14 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
         let mut per_image = Vec::new();
         let mut candidates = Vec::new();
         let mut objects: BTreeMap<String, (Object, f64)> = BTreeMap::new();
+        // Targets without an annotated instance (a withheld ground truth): registered and
+        // written to the BOP CSV, not scored; with --gt-mask (no mask to give) left out.
+        let (mut unscored, mut no_mask) = (0usize, 0usize);
         let bar = progress(n as u64, name);
         for target in &targets[..n] {
             let gt_indices = ds.instances_of(target);
-            if gt_indices.is_empty() {
+            if gt_indices.is_empty() && args.gt_mask {
+                no_mask += 1;
                 bar.inc(1);
                 continue;
             }
@@ -755,11 +763,21 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                 samples.into_iter().map(Some).collect();
             let samples: Vec<ic_data::RoomSample> =
                 keep.iter().filter_map(|&k| samples[k].take()).collect();
-            let first = &samples[0];
-            if !objects.contains_key(&first.object_id) {
+            // The image every estimate comes from: the first true instance's, or the image
+            // alone when none is annotated.
+            let bare;
+            let (depth, intrinsics, object_id) = match samples.first() {
+                Some(first) => (&first.depth, &first.intrinsics, &first.object_id),
+                None => {
+                    unscored += 1;
+                    bare = ds.image(target.scene_id, target.im_id, target.obj_id)?;
+                    (&bare.depth, &bare.intrinsics, &bare.object_id)
+                }
+            };
+            if !objects.contains_key(object_id) {
                 let corpus = ds.corpus();
                 let obj = corpus
-                    .position(&first.object_id)
+                    .position(object_id)
                     .map(|p| corpus.object(p))
                     .ok_or_else(|| CliError::internal("object missing from the corpus"))??;
                 let object = Object::from_normalised(
@@ -768,9 +786,9 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                     obj.model_points.clone(),
                 )?;
                 let d = ic_eval::diameter(&object.points[..object.points.len().min(1024)]);
-                objects.insert(first.object_id.clone(), (object, d));
+                objects.insert(object_id.clone(), (object, d));
             }
-            let (object, diameter) = &objects[&first.object_id];
+            let (object, diameter) = &objects[object_id];
             let cseed = case_seed(
                 seed,
                 &format!("{}/{}/{}", target.scene_id, target.im_id, target.obj_id),
@@ -793,32 +811,24 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                         ));
                     }
                 } else if target.inst_count > 1 {
-                    match pipeline.register_depth_all_normalised(
-                        object,
-                        &first.depth,
-                        &first.intrinsics,
-                        cseed,
-                    ) {
+                    match pipeline.register_depth_all_normalised(object, depth, intrinsics, cseed) {
                         Ok(found) => {
                             estimates.extend(found.into_iter().take(target.inst_count).map(Ok))
                         }
                         Err(e) => estimates.push(Err(e)),
                     }
                 } else {
-                    estimates.push(pipeline.register_depth_normalised(
-                        object,
-                        &first.depth,
-                        &first.intrinsics,
-                        None,
-                        cseed,
-                    ));
+                    estimates.push(
+                        pipeline.register_depth_normalised(object, depth, intrinsics, None, cseed),
+                    );
                 }
                 let s = clock.elapsed().as_secs_f64();
-                if args.candidates > 0 && !args.gt_mask {
+                // A candidate line needs the truth to score its hypotheses against.
+                if args.candidates > 0 && !args.gt_mask && !samples.is_empty() {
                     let every = pipeline.register_every_instance_normalised(
                         object,
-                        &first.depth,
-                        &first.intrinsics,
+                        depth,
+                        intrinsics,
                         args.candidates,
                         cseed,
                     )?;
@@ -885,6 +895,14 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                     }
                     recs.push(rec.to_string());
                 }
+                if samples.is_empty() {
+                    // Nothing to score: the line says what was returned.
+                    let mut rec = json!({"scene_id": target.scene_id, "im_id": target.im_id, "obj_id": target.obj_id, "method": m.name, "seconds": s, "scored": false, "estimates": found.len()});
+                    if let Some(e) = estimates.iter().find_map(|e| e.as_ref().err()) {
+                        rec["error"] = json!(e.message());
+                    }
+                    recs.push(rec.to_string());
+                }
                 times.entry(m.name.clone()).or_default().push(s);
                 per_image.extend(recs);
                 let join = |v: &[f64]| {
@@ -948,7 +966,7 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
             .collect();
         let table = ic_eval::markdown_table(&results);
         let heading = format!(
-            "## {name} ({} targets of {}, split {}{})\n\n",
+            "## {name} ({} targets of {}, split {}{}{})\n\n",
             n,
             root.display(),
             args.split,
@@ -956,6 +974,12 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                 ", ground-truth masks"
             } else {
                 ""
+            },
+            match (unscored, no_mask) {
+                (0, 0) => String::new(),
+                (k, 0) =>
+                    format!("; {k} without ground truth: registered and in the BOP CSV, not scored"),
+                (_, k) => format!("; {k} without ground truth left out (no mask to give)"),
             }
         );
         write_text(&sub_out.join("results.md"), &format!("{heading}{table}"))?;
@@ -989,7 +1013,7 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
         tables.push('\n');
         report.insert(
             name.clone(),
-            json!({"images": n, "out": sub_out, "bop_csv": csv_files, "results": results.iter().map(|r| json!({"method": r.method, "summary": r.summary, "seconds_median": r.seconds_median})).collect::<Vec<_>>()}),
+            json!({"images": n, "unscored": unscored + no_mask, "out": sub_out, "bop_csv": csv_files, "results": results.iter().map(|r| json!({"method": r.method, "summary": r.summary, "seconds_median": r.seconds_median})).collect::<Vec<_>>()}),
         );
     }
     Ok(

@@ -324,6 +324,72 @@ fn eval_dataset_registers_every_target_instance_of_a_bop_clutter_set() {
     assert!(!time_of.is_empty());
 }
 
+/// The rows of a BOP results CSV without their time column, sorted.
+fn csv_rows_without_time(out: &Path) -> Vec<String> {
+    let csv = std::fs::read_dir(out)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.extension().is_some_and(|e| e == "csv"))
+        .expect("a BOP results CSV");
+    let mut rows: Vec<String> = std::fs::read_to_string(csv)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|r| r.rsplit_once(',').unwrap().0.to_string())
+        .collect();
+    rows.sort();
+    rows
+}
+
+#[test]
+fn a_test_set_without_ground_truth_is_registered_into_the_csv_as_with_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("clutter-bop");
+    write_clutter_bop(&root, 2);
+    let method = ["--method", "ours-softmax"];
+    let with_gt = dir.path().join("with-gt");
+    let o = eval_dataset(&root, &method, &with_gt);
+    assert_eq!(json_stdout(&o)["datasets"]["clutter-bop"]["unscored"], 0);
+    // The ground truth withheld, as in a BOP test set whose annotations are private.
+    let scene = root.join("test/000000");
+    for f in ["scene_gt.json", "scene_gt_info.json"] {
+        std::fs::remove_file(scene.join(f)).unwrap();
+    }
+    for d in ["mask", "mask_visib"] {
+        std::fs::remove_dir_all(scene.join(d)).unwrap();
+    }
+    let without = dir.path().join("without-gt");
+    let o = eval_dataset(&root, &method, &without);
+    let report = json_stdout(&o);
+    assert_eq!(report["datasets"]["clutter-bop"]["unscored"], 2, "{report}");
+    let lines = jsonl(&without.join("per_image.jsonl"));
+    assert_eq!(lines.len(), 2);
+    assert!(lines.iter().all(|l| l["scored"] == false), "{lines:?}");
+    // The estimates are the ground truth's business only when scoring: the same rows.
+    let rows = csv_rows_without_time(&without);
+    assert!(!rows.is_empty());
+    assert_eq!(rows, csv_rows_without_time(&with_gt));
+    // Without the targets file nothing says what to find; a target naming no model is refused.
+    let targets = root.join("test_targets_bop19.json");
+    let kept = std::fs::read_to_string(&targets).unwrap();
+    std::fs::remove_file(&targets).unwrap();
+    let o = incontext(&["eval", "--dataset", s(&root), "--out", s(&without)]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("test_targets_bop19.json"),
+        "{}",
+        stderr(&o)
+    );
+    std::fs::write(&targets, kept.replacen("\"obj_id\": ", "\"obj_id\": 9", 1)).unwrap();
+    let o = incontext(&["eval", "--dataset", s(&root), "--out", s(&without)]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("test_targets_bop19.json") && stderr(&o).contains("no such model"),
+        "{}",
+        stderr(&o)
+    );
+}
+
 #[test]
 fn eval_candidates_lists_every_verified_hypothesis_with_its_network_and_errors() {
     let dir = tempfile::tempdir().unwrap();
