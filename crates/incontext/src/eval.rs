@@ -54,7 +54,7 @@ pub struct EvalArgs {
     #[arg(long)]
     pub cases: Option<PathBuf>,
     /// Real frames without ground truth: a folder with `model.ply` (mm), `camera.json` and
-    /// depth PNGs in `*/depth/`. Each frame is registered as `register` and `register --all`
+    /// depth maps in `*/depth/` (PNG, or TIFF / EXR as `register` reads them). Each frame is registered as `register` and `register --all`
     /// do, and each pose judged by rendering it against the depth map (`--tolerance-mm`).
     #[arg(long)]
     pub frames: Option<PathBuf>,
@@ -1108,7 +1108,7 @@ pub const FRAME_IN_FRONT: f64 = 0.05;
 /// … and at least this many of its rendered pixels are visible.
 pub const FRAME_MIN_VISIBLE: usize = 50;
 
-/// The depth PNGs of a frames folder: `<dir>/*/depth/*.png`, sorted.
+/// The depth maps of a frames folder: `<dir>/*/depth/*.{png,tif,tiff,exr}`, sorted.
 fn frame_files(dir: &Path) -> Result<Vec<PathBuf>> {
     let read = |d: &Path| -> Result<Vec<PathBuf>> {
         let mut v: Vec<PathBuf> = std::fs::read_dir(d)
@@ -1123,12 +1123,13 @@ fn frame_files(dir: &Path) -> Result<Vec<PathBuf>> {
         out.extend(
             read(&sub.join("depth"))?
                 .into_iter()
-                .filter(|p| p.extension().is_some_and(|e| e.eq_ignore_ascii_case("png"))),
+                .filter(|p| inputs::is_depth_file(p)),
         );
     }
     if out.is_empty() {
         return Err(CliError::input(format!(
-            "{}: no depth PNG in */depth/ (expected model.ply, camera.json and SCENE/depth/*.png)",
+            "{}: no depth map in */depth/ (expected model.ply, camera.json and SCENE/depth/*.png, \
+             or .tif / .exr as register reads them)",
             dir.display()
         )));
     }
@@ -1232,7 +1233,11 @@ fn run_frames(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Res
             let png = out.join(format!(
                 "{}_{}.png",
                 m.name,
-                name.replace(['/', '\\'], "_").trim_end_matches(".png")
+                Path::new(&name)
+                    .with_extension("")
+                    .display()
+                    .to_string()
+                    .replace(['/', '\\'], "_")
             ));
             crate::overlay::write_rgb_png(
                 &png,

@@ -343,6 +343,12 @@ fn depth_format(path: &Path) -> Result<DepthFormat> {
     }
 }
 
+/// Whether `path` names a depth map `register` reads (by its extension: `.png`, `.exr`,
+/// `.tif`, `.tiff`, any case).
+pub fn is_depth_file(path: &Path) -> bool {
+    depth_format(path).is_ok()
+}
+
 /// Size of a depth file from its header alone (nothing is decoded), within the readers' limits
 /// ([`ic_render::io::MAX_IMAGE_SIDE`], [`ic_render::io::MAX_IMAGE_PIXELS`]).
 pub fn depth_size(path: &Path) -> Result<(u32, u32)> {

@@ -43,8 +43,8 @@ pub struct RegisterArgs {
     /// --model-unit-mm).
     #[arg(long)]
     pub model: PathBuf,
-    /// The depth map: a 16-bit PNG (value × the camera's depth_scale = mm, BOP) or an EXR in
-    /// metres; 0 = no return.
+    /// The depth map: a 16-bit PNG or a one-channel TIFF, 16-bit or float (value × the camera's
+    /// depth_scale = mm, BOP), or an EXR in metres; 0 = no return.
     #[arg(long)]
     pub depth: PathBuf,
     /// BOP-style camera JSON: cam_K (9 numbers, row-major) or fx/fy/cx/cy; width, height
