@@ -282,12 +282,87 @@ fn prepare_out(common: &CommonArgs) -> Result<()> {
     if common.batch_size == Some(0) {
         return Err(CliError::input("--batch-size must be ≥ 1"));
     }
+    if !(common.learning_rate.is_finite() && common.learning_rate > 0.0) {
+        return Err(CliError::input(format!(
+            "--learning-rate must be a positive number, got {}",
+            common.learning_rate
+        )));
+    }
+    if !(common.lr_floor.is_finite() && common.lr_floor >= 0.0) {
+        return Err(CliError::input(format!(
+            "--lr-floor must be a number ≥ 0, got {}",
+            common.lr_floor
+        )));
+    }
     std::fs::create_dir_all(&common.out).map_err(|e| {
         CliError::input(format!(
             "{}: cannot create --out: {e}",
             common.out.display()
         ))
     })
+}
+
+/// Peak training memory per pose pair of `m` model and `n` observed points, in bytes: the
+/// activations the backward pass keeps, a·(M + N) (the DGCNN's edge features) + b·M·N (the
+/// attention and the soft assignment), fitted to the peak resident memory of `incontext train
+/// pose` at two batch sizes each at 384×288 (≈ 35 MB a pair) and 1024×768 (≈ 112 MB).
+fn pose_pair_bytes(m: usize, n: usize) -> f64 {
+    46.4e3 * (m + n) as f64 + 36.3 * m as f64 * n as f64
+}
+
+/// Peak training memory per segmentation sample of `pixels` network input pixels, in bytes:
+/// ≈ 134 MB at 256×192 for the shipped clutter network (16-32-64-128 channels), measured as
+/// [`pose_pair_bytes`].
+fn seg_sample_bytes(pixels: u64) -> f64 {
+    2.72e3 * pixels as f64
+}
+
+/// The memory this process may take now, in bytes: `MemAvailable` of `/proc/meminfo` (Linux);
+/// `None` elsewhere.
+fn available_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
+}
+
+/// Refuses a batch whose training activations (`batch × per_sample` bytes) would not fit in
+/// 80 % of the memory available now: a mistyped `--batch-size 100000` or `--model-points`
+/// is bad input, not a machine driven into swap or the OOM killer.
+fn check_batch_memory(batch: usize, per_sample: f64, what: &str) -> Result<()> {
+    let Some(available) = available_memory() else {
+        return Ok(());
+    };
+    let need = batch as f64 * per_sample;
+    let budget = 0.8 * available as f64;
+    if need > budget {
+        let gib = |b: f64| b / (1u64 << 30) as f64;
+        let fits = (budget / per_sample).floor() as u64;
+        let fix = match (fits, what.contains("pair")) {
+            (0, _) => "not even one fits: lower the point counts".to_string(),
+            (_, true) => format!("at most {fits} fit: lower --batch-size or the point counts"),
+            (_, false) => format!("at most {fits} fit: lower --batch-size"),
+        };
+        return Err(CliError::input(format!(
+            "a training batch of {batch} {what} needs ≈ {:.1} GiB, more than this machine has \
+             free ({:.1} GiB available); {fix}",
+            gib(need),
+            gib(available as f64),
+        )));
+    }
+    Ok(())
+}
+
+/// `--data-workers` capped to the logical CPUs (thousands of render threads only take
+/// memory and minutes to start), with a warning.
+fn data_workers(asked: usize) -> usize {
+    let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+    if asked > cpus {
+        tracing::warn!(
+            "--data-workers {asked} is more than the {cpus} logical CPUs of this machine: using {cpus}"
+        );
+    }
+    asked.clamp(1, cpus)
 }
 
 fn control(common: &CommonArgs) -> RunControl<'static> {
@@ -350,10 +425,18 @@ fn train_pose(a: &PoseTrainArgs, seed: u64) -> Result<Value> {
         crate::models::shipped_pose(head.unwrap_or(Head::Softmax)),
         "pose network",
     )?;
+    // The training defaults of the network started from (a resumed run's own checkpoint
+    // holds the same configuration).
+    let (mut m, mut n, mut batch) = (384, 288, 4);
     if let Some(p) = start.path() {
         let cfg = ic_pose::checkpoint::read_config(p).map_err(|e| {
             CliError::input(format!("{}: not a pose checkpoint: {e}", start.describe()))
         })?;
+        (m, n, batch) = (
+            cfg.train.model_points,
+            cfg.train.observed_points,
+            cfg.train.batch_size,
+        );
         if let Some(h) = head
             && h != cfg.net.head
         {
@@ -365,6 +448,11 @@ fn train_pose(a: &PoseTrainArgs, seed: u64) -> Result<Value> {
             )));
         }
     }
+    check_batch_memory(
+        c.batch_size.unwrap_or(batch),
+        pose_pair_bytes(a.model_points.unwrap_or(m), a.observed_points.unwrap_or(n)),
+        "pose pairs",
+    )?;
     let args = ic_train::pose::TrainArgs {
         preset: "cpu".into(),
         head: a.head.clone(),
@@ -378,7 +466,7 @@ fn train_pose(a: &PoseTrainArgs, seed: u64) -> Result<Value> {
         seed,
         resume: c.resume,
         threads: None,
-        data_workers: c.data_workers.max(1),
+        data_workers: data_workers(c.data_workers),
         checkpoint_secs: c.checkpoint_secs,
         batch_size: c.batch_size,
         emb_dims: None,
@@ -417,20 +505,27 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
     // meshes with a fifth of lone objects in a room, as it was trained (its loss weights
     // included: they come with its configuration); a one-output network (`--from` an older
     // checkpoint) on room scenes.
-    let outputs = match start.path() {
+    let (outputs, pixels, batch) = match start.path() {
         Some(p) => {
-            ic_seg::checkpoint::read_config(p)
-                .map_err(|e| {
-                    CliError::input(format!(
-                        "{}: not a segmentation checkpoint: {e}",
-                        start.describe()
-                    ))
-                })?
-                .net
-                .outputs
+            let cfg = ic_seg::checkpoint::read_config(p).map_err(|e| {
+                CliError::input(format!(
+                    "{}: not a segmentation checkpoint: {e}",
+                    start.describe()
+                ))
+            })?;
+            (
+                cfg.net.outputs,
+                cfg.net.input_width as u64 * cfg.net.input_height as u64,
+                cfg.train.batch_size,
+            )
         }
-        None => 2,
+        None => (2, 256 * 192, 4),
     };
+    check_batch_memory(
+        c.batch_size.unwrap_or(batch),
+        seg_sample_bytes(pixels),
+        "segmentation samples",
+    )?;
     let (preset, scenes, room_fraction) = match outputs {
         4 => ("clutter-offsets", "clutter", 0.2),
         2 => ("clutter", "clutter", 0.2),
@@ -447,7 +542,7 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
         seed,
         resume: c.resume,
         threads: None,
-        data_workers: c.data_workers.max(1),
+        data_workers: data_workers(c.data_workers),
         checkpoint_secs: c.checkpoint_secs,
         validate_every: c.validate_every,
         validation_count: c.validation_count as u64,

@@ -159,3 +159,36 @@ fn bad_objects_or_from_exit_2_naming_the_file() {
         &["bracket.ply", "not a segmentation checkpoint"],
     );
 }
+
+#[test]
+fn a_batch_beyond_the_machines_memory_or_a_bad_learning_rate_is_refused_before_training() {
+    let dir = tempfile::tempdir().unwrap();
+    let objects = objects(dir.path());
+    let out = dir.path().join("out");
+    let refused = |extra: &[&str], needles: &[&str]| {
+        let mut args = vec!["train", extra[0], "--objects", &objects, "--out", s(&out)];
+        args.extend_from_slice(&extra[1..]);
+        check(&args, 2, needles);
+    };
+    // A pose batch of 100 000 pairs holds terabytes of activations; so does one pair of 10⁸
+    // model points; a segmentation batch of 100 000 scenes too. Each is refused at once.
+    refused(
+        &["pose", "--batch-size", "100000"],
+        &["100000 pose pairs", "GiB", "--batch-size"],
+    );
+    refused(
+        &["pose", "--model-points", "100000000"],
+        &["not even one fits", "point counts"],
+    );
+    refused(
+        &["seg", "--batch-size", "100000"],
+        &["100000 segmentation samples", "GiB"],
+    );
+    refused(
+        &["pose", "--learning-rate", "nan"],
+        &["--learning-rate must be a positive number"],
+    );
+    refused(&["seg", "--lr-floor", "inf"], &["--lr-floor"]);
+    // Nothing was trained or written.
+    assert!(!out.join("latest.safetensors").exists());
+}
