@@ -720,6 +720,17 @@ impl Registrar {
         points: &Bound<'_, PyAny>,
     ) -> PyResult<RegistrationResult> {
         let clock = Instant::now();
+        // No depth map the readers accept gives more points than it has pixels: a larger cloud
+        // is refused on its shape, before it is copied.
+        let (_, shape, _, _, _) = as_array(points, "points")?;
+        if let Some(&n) = shape.first()
+            && n as u64 > ic_render::io::MAX_IMAGE_PIXELS
+        {
+            return Err(value_error(format!(
+                "points: {n} points is more than the {} a depth map may hold; subsample the cloud",
+                ic_render::io::MAX_IMAGE_PIXELS
+            )));
+        }
         let (p, _) = real_rows(points, "points", 3)?;
         let points = vec3s(&p);
         let model = model.get();

@@ -236,3 +236,11 @@ def test_bad_settings_are_value_errors(demo):
         incontext.render(model, np.ones((4, 4)), camera)
     with raises(ValueError, "pose", "shape (4, 4)"):
         incontext.render(model, np.eye(3), camera)
+
+
+def test_a_point_cloud_larger_than_any_depth_map_is_a_value_error(demo):
+    model = incontext.Model.from_file(demo / "model.ply")
+    # A broadcast view: 2²⁵ + 1 rows that take no memory; refused on its shape, before a copy.
+    huge = np.broadcast_to(np.zeros(3, np.float32), (2**25 + 1, 3))
+    with raises(ValueError, "points", "subsample"):
+        incontext.Registrar(threads=1).register_points(model, huge)
