@@ -194,8 +194,14 @@ fn mask_array(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<(Vec<bool>, u32, u
     Ok((v, size(cols), size(rows)))
 }
 
-/// An `(N, columns)` array of real numbers (integers or floats) as f64, row-major.
-fn real_rows(obj: &Bound<'_, PyAny>, what: &str, columns: usize) -> PyResult<(Vec<f64>, usize)> {
+/// An `(N, columns)` array of real numbers (integers or floats) as f64, row-major; refused when
+/// N exceeds `max_rows`.
+fn real_rows(
+    obj: &Bound<'_, PyAny>,
+    what: &str,
+    columns: usize,
+    max_rows: Option<u64>,
+) -> PyResult<(Vec<f64>, usize)> {
     let (arr, shape, kind, _, name) = as_array(obj, what)?;
     if !matches!(kind, 'f' | 'u' | 'i') {
         return Err(value_error(format!(
@@ -211,6 +217,12 @@ fn real_rows(obj: &Bound<'_, PyAny>, what: &str, columns: usize) -> PyResult<(Ve
             )));
         }
     };
+    // Refused on the shape, before the copy.
+    if let Some(max) = max_rows.filter(|&max| n as u64 > max) {
+        return Err(value_error(format!(
+            "{what}: {n} rows is more than the {max} accepted; subsample them"
+        )));
+    }
     let (v, _, _) = values_2d::<f64>(&arr, "float64")?;
     Ok((v, n))
 }
@@ -322,7 +334,7 @@ impl Model {
     #[new]
     #[pyo3(signature = (vertices, faces, unit_mm = 1.0))]
     fn new(vertices: &Bound<'_, PyAny>, faces: &Bound<'_, PyAny>, unit_mm: f64) -> PyResult<Self> {
-        let (v, _) = real_rows(vertices, "vertices", 3)?;
+        let (v, _) = real_rows(vertices, "vertices", 3, None)?;
         let (f_arr, shape, kind, _, name) = as_array(faces, "faces")?;
         if !matches!(kind, 'u' | 'i') {
             return Err(value_error(format!(
@@ -720,18 +732,8 @@ impl Registrar {
         points: &Bound<'_, PyAny>,
     ) -> PyResult<RegistrationResult> {
         let clock = Instant::now();
-        // No depth map the readers accept gives more points than it has pixels: a larger cloud
-        // is refused on its shape, before it is copied.
-        let (_, shape, _, _, _) = as_array(points, "points")?;
-        if let Some(&n) = shape.first()
-            && n as u64 > ic_render::io::MAX_IMAGE_PIXELS
-        {
-            return Err(value_error(format!(
-                "points: {n} points is more than the {} a depth map may hold; subsample the cloud",
-                ic_render::io::MAX_IMAGE_PIXELS
-            )));
-        }
-        let (p, _) = real_rows(points, "points", 3)?;
+        // No depth map the readers accept gives more points than it has pixels.
+        let (p, _) = real_rows(points, "points", 3, Some(ic_render::io::MAX_IMAGE_PIXELS))?;
         let points = vec3s(&p);
         let model = model.get();
         let seed = self.seed;

@@ -532,8 +532,8 @@ pub struct BopImage {
     pub depth: DepthImage,
     /// The image's camera (`cam_K` of `scene_camera.json`), in pixels.
     pub intrinsics: Intrinsics,
-    /// The model's corpus id (`obj_XXXXXX`).
-    pub object_id: String,
+    /// The model (corpus id `obj_XXXXXX`, its normalisation).
+    pub object: Arc<CorpusObject>,
 }
 
 /// Options of [`BopDataset::load`].
@@ -925,7 +925,7 @@ impl BopDataset {
         Ok(BopImage {
             depth,
             intrinsics,
-            object_id: object.id.clone(),
+            object,
         })
     }
 
@@ -941,10 +941,9 @@ impl BopDataset {
         let BopImage {
             depth,
             intrinsics: k,
-            ..
+            object,
         } = self.image(inst.scene_id, inst.im_id, inst.obj_id)?;
         let scene = &self.scenes[&inst.scene_id];
-        let object = self.corpus.object(self.obj_index[&inst.obj_id])?;
         let norm = object.normalisation;
         let (w, h) = (depth.width, depth.height);
         let mask_file = |dir: &str| {

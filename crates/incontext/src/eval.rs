@@ -54,8 +54,9 @@ pub struct EvalArgs {
     #[arg(long)]
     pub cases: Option<PathBuf>,
     /// Real frames without ground truth: a folder with `model.ply` (mm), `camera.json` and
-    /// depth maps in `*/depth/` (PNG, or TIFF / EXR as `register` reads them). Each frame is registered as `register` and `register --all`
-    /// do, and each pose judged by rendering it against the depth map (`--tolerance-mm`).
+    /// depth maps in `*/depth/` (PNG, or TIFF / EXR as `register` reads them). Each frame is
+    /// registered as `register` and `register --all` do, and each pose judged by rendering it
+    /// against the depth map (`--tolerance-mm`).
     #[arg(long)]
     pub frames: Option<PathBuf>,
     /// --frames: a rendered pixel agrees with the depth map within this many millimetres.
@@ -771,7 +772,7 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                 None => {
                     unscored += 1;
                     bare = ds.image(target.scene_id, target.im_id, target.obj_id)?;
-                    (&bare.depth, &bare.intrinsics, &bare.object_id)
+                    (&bare.depth, &bare.intrinsics, &bare.object.id)
                 }
             };
             if !objects.contains_key(object_id) {

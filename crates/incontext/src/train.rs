@@ -328,8 +328,9 @@ fn available_memory() -> Option<u64> {
 
 /// Refuses a batch whose training activations (`batch × per_sample` bytes) would not fit in
 /// 80 % of the memory available now: a mistyped `--batch-size 100000` or `--model-points`
-/// is bad input, not a machine driven into swap or the OOM killer.
-fn check_batch_memory(batch: usize, per_sample: f64, what: &str) -> Result<()> {
+/// is bad input, not a machine driven into swap or the OOM killer. `sample_size` names what
+/// sets `per_sample`, for the message.
+fn check_batch_memory(batch: usize, per_sample: f64, what: &str, sample_size: &str) -> Result<()> {
     let Some(available) = available_memory() else {
         return Ok(());
     };
@@ -338,10 +339,9 @@ fn check_batch_memory(batch: usize, per_sample: f64, what: &str) -> Result<()> {
     if need > budget {
         let gib = |b: f64| b / (1u64 << 30) as f64;
         let fits = (budget / per_sample).floor() as u64;
-        let fix = match (fits, what.contains("pair")) {
-            (0, _) => "not even one fits: lower the point counts".to_string(),
-            (_, true) => format!("at most {fits} fit: lower --batch-size or the point counts"),
-            (_, false) => format!("at most {fits} fit: lower --batch-size"),
+        let fix = match fits {
+            0 => format!("not even one fits: lower {sample_size}"),
+            _ => format!("at most {fits} fit: lower --batch-size or {sample_size}"),
         };
         return Err(CliError::input(format!(
             "a training batch of {batch} {what} needs ≈ {:.1} GiB, more than this machine has \
@@ -425,33 +425,32 @@ fn train_pose(a: &PoseTrainArgs, seed: u64) -> Result<Value> {
         crate::models::shipped_pose(head.unwrap_or(Head::Softmax)),
         "pose network",
     )?;
-    // The training defaults of the network started from (a resumed run's own checkpoint
-    // holds the same configuration).
-    let (mut m, mut n, mut batch) = (384, 288, 4);
-    if let Some(p) = start.path() {
-        let cfg = ic_pose::checkpoint::read_config(p).map_err(|e| {
+    // The configuration started from: the checkpoint's (a resumed run's own holds the same),
+    // or the `cpu` preset that --scratch trains.
+    let cfg = match start.path() {
+        Some(p) => ic_pose::checkpoint::read_config(p).map_err(|e| {
             CliError::input(format!("{}: not a pose checkpoint: {e}", start.describe()))
-        })?;
-        (m, n, batch) = (
-            cfg.train.model_points,
-            cfg.train.observed_points,
-            cfg.train.batch_size,
-        );
-        if let Some(h) = head
-            && h != cfg.net.head
-        {
-            return Err(CliError::input(format!(
-                "{}: the checkpoint has the {} head, but --head {} was asked for",
-                start.describe(),
-                cfg.net.head.as_str(),
-                h.as_str()
-            )));
-        }
+        })?,
+        None => ic_pose::PoseConfig::cpu(head.unwrap_or(Head::Softmax)),
+    };
+    if let Some(h) = head
+        && h != cfg.net.head
+    {
+        return Err(CliError::input(format!(
+            "{}: the checkpoint has the {} head, but --head {} was asked for",
+            start.describe(),
+            cfg.net.head.as_str(),
+            h.as_str()
+        )));
     }
     check_batch_memory(
-        c.batch_size.unwrap_or(batch),
-        pose_pair_bytes(a.model_points.unwrap_or(m), a.observed_points.unwrap_or(n)),
+        c.batch_size.unwrap_or(cfg.train.batch_size),
+        pose_pair_bytes(
+            a.model_points.unwrap_or(cfg.train.model_points),
+            a.observed_points.unwrap_or(cfg.train.observed_points),
+        ),
         "pose pairs",
+        "the point counts",
     )?;
     let args = ic_train::pose::TrainArgs {
         preset: "cpu".into(),
@@ -505,28 +504,23 @@ fn train_seg(a: &SegTrainArgs, seed: u64) -> Result<Value> {
     // meshes with a fifth of lone objects in a room, as it was trained (its loss weights
     // included: they come with its configuration); a one-output network (`--from` an older
     // checkpoint) on room scenes.
-    let (outputs, pixels, batch) = match start.path() {
-        Some(p) => {
-            let cfg = ic_seg::checkpoint::read_config(p).map_err(|e| {
-                CliError::input(format!(
-                    "{}: not a segmentation checkpoint: {e}",
-                    start.describe()
-                ))
-            })?;
-            (
-                cfg.net.outputs,
-                cfg.net.input_width as u64 * cfg.net.input_height as u64,
-                cfg.train.batch_size,
-            )
-        }
-        None => (2, 256 * 192, 4),
+    let cfg = match start.path() {
+        Some(p) => ic_seg::checkpoint::read_config(p).map_err(|e| {
+            CliError::input(format!(
+                "{}: not a segmentation checkpoint: {e}",
+                start.describe()
+            ))
+        })?,
+        // --scratch: the `clutter` preset, two outputs.
+        None => ic_seg::SegConfig::clutter(),
     };
     check_batch_memory(
-        c.batch_size.unwrap_or(batch),
-        seg_sample_bytes(pixels),
+        c.batch_size.unwrap_or(cfg.train.batch_size),
+        seg_sample_bytes(cfg.net.input_width as u64 * cfg.net.input_height as u64),
         "segmentation samples",
+        "the network's input size",
     )?;
-    let (preset, scenes, room_fraction) = match outputs {
+    let (preset, scenes, room_fraction) = match cfg.net.outputs {
         4 => ("clutter-offsets", "clutter", 0.2),
         2 => ("clutter", "clutter", 0.2),
         _ => ("cpu", "room", 0.0),
