@@ -693,16 +693,8 @@ fn eval_reads_depth_stored_as_tiff_as_itodd_ships_it() {
     for scene in std::fs::read_dir(root.join("test")).unwrap() {
         let depth_dir = scene.unwrap().path().join("depth");
         for png in std::fs::read_dir(&depth_dir).unwrap() {
-            let png = png.unwrap().path();
-            // Stored values back from metres at depth_scale 1 (1 mm per step).
-            let m = ic_render::io::read_depth_png(&png, 1.0, None).unwrap();
-            let stored: Vec<u16> = m.data.iter().map(|z| (z * 1000.0).round() as u16).collect();
-            let tif = std::fs::File::create(png.with_extension("tif")).unwrap();
-            tiff::encoder::TiffEncoder::new(tif)
-                .unwrap()
-                .write_image::<tiff::encoder::colortype::Gray16>(m.width, m.height, &stored)
-                .unwrap();
-            std::fs::remove_file(&png).unwrap();
+            // Written at depth_scale 1 (1 mm per step).
+            depth_png_to_tiff(&png.unwrap().path(), 1.0);
             converted += 1;
         }
     }

@@ -533,22 +533,11 @@ fn eval_frames_judges_each_pose_against_the_depth_without_ground_truth() {
     std::fs::rename(frame.join("camera.json"), dir.path().join("camera.json")).unwrap();
     // A second frame, left out by --limit 1 (the first in name order is registered).
     std::fs::copy(frame.join("depth/0000.png"), frame.join("depth/0001.png")).unwrap();
-    // The first as a 16-bit TIFF of the same stored values (as BOP's ITODD ships depth).
+    // The first as a 16-bit TIFF of the same stored values.
     let scale = read_json(&dir.path().join("camera.json"))["depth_scale"]
         .as_f64()
         .unwrap_or(1.0);
-    let png = frame.join("depth/0000.png");
-    let m = ic_render::io::read_depth_png(&png, scale, None).unwrap();
-    let stored: Vec<u16> = m
-        .data
-        .iter()
-        .map(|&z| (z as f64 * 1000.0 / scale).round() as u16)
-        .collect();
-    tiff::encoder::TiffEncoder::new(std::fs::File::create(png.with_extension("tif")).unwrap())
-        .unwrap()
-        .write_image::<tiff::encoder::colortype::Gray16>(m.width, m.height, &stored)
-        .unwrap();
-    std::fs::remove_file(&png).unwrap();
+    depth_png_to_tiff(&frame.join("depth/0000.png"), scale);
     let out = dir.path().join("out");
     let o = check(
         &[

@@ -173,3 +173,19 @@ pub fn add_s(model: &Path, a: &Pose, b: &Pose) -> (f32, f32) {
         .fold(0.0f32, f32::max);
     (add_s, diameter)
 }
+
+/// Replaces a 16-bit depth PNG stored at `depth_scale` (`stored × depth_scale = mm`) by a
+/// 16-bit TIFF of the same stored values beside it (as BOP's ITODD ships depth).
+pub fn depth_png_to_tiff(png: &Path, depth_scale: f64) {
+    let m = ic_render::io::read_depth_png(png, depth_scale, None).unwrap();
+    let stored: Vec<u16> = m
+        .data
+        .iter()
+        .map(|&z| (z as f64 * 1000.0 / depth_scale).round() as u16)
+        .collect();
+    tiff::encoder::TiffEncoder::new(std::fs::File::create(png.with_extension("tif")).unwrap())
+        .unwrap()
+        .write_image::<tiff::encoder::colortype::Gray16>(m.width, m.height, &stored)
+        .unwrap();
+    std::fs::remove_file(png).unwrap();
+}
