@@ -112,7 +112,9 @@ class Registrar:
         seg_model: Optional[_Path] = None,
         second_pose_model: Optional[_Path] = None,
         second_pose: bool = True,
-    ) -> None: ...
+        attention_keys: Optional[Union[int, str]] = None,
+    ) -> None:
+        """``attention_keys``: the pose networks' attention keys per cloud (an int ≥ 1, fewer is faster) or ``"all"`` (every point); None: each network's own, as ``register --attention-keys``."""
     def register(
         self,
         model: Model,

@@ -565,10 +565,25 @@ impl Registrar {
     }
 }
 
+/// `attention_keys=`: an int ≥ 1 (keys per cloud) or "all" (every point).
+fn parse_attention_keys(v: &Bound<'_, PyAny>) -> PyResult<Option<usize>> {
+    if let Ok(s) = v.extract::<String>() {
+        return incontext::register::parse_attention_keys(&s)
+            .map(|k| k.0)
+            .map_err(|e| value_error(format!("attention_keys: {e}")));
+    }
+    match v.extract::<i64>() {
+        Ok(n) if n >= 1 => Ok(Some(n as usize)),
+        _ => Err(value_error(format!(
+            "attention_keys: {v} is not a number of keys (an int ≥ 1, or \"all\")"
+        ))),
+    }
+}
+
 #[pymethods]
 impl Registrar {
     #[new]
-    #[pyo3(signature = (head = Some("softmax"), refine = "icp", threads = None, seed = 0, *, rotations = 24, hypotheses = 1, verify_top = 8, pose_model = None, seg_model = None, second_pose_model = None, second_pose = true))]
+    #[pyo3(signature = (head = Some("softmax"), refine = "icp", threads = None, seed = 0, *, rotations = 24, hypotheses = 1, verify_top = 8, pose_model = None, seg_model = None, second_pose_model = None, second_pose = true, attention_keys = None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -583,7 +598,9 @@ impl Registrar {
         seg_model: Option<PathBuf>,
         second_pose_model: Option<PathBuf>,
         second_pose: bool,
+        attention_keys: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
+        let attention_keys = attention_keys.map(parse_attention_keys).transpose()?;
         if !second_pose && second_pose_model.is_some() {
             return Err(value_error(
                 "second_pose_model is given but second_pose is False".into(),
@@ -637,6 +654,9 @@ impl Registrar {
                 }
                 if let Some(path) = &pose_model {
                     builder = builder.pose_model(path);
+                }
+                if let Some(keys) = attention_keys {
+                    builder = builder.attention_keys(keys);
                 }
                 let bare = builder.clone().segmentation(false).build()?;
                 let segmenting = if with_seg {

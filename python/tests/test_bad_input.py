@@ -230,6 +230,9 @@ def test_bad_settings_are_value_errors(demo):
         incontext.Registrar(rotations=7)
     with raises(ValueError, "hypotheses"):
         incontext.Registrar(hypotheses=0)
+    for keys in (0, -3, "most", 2.5):
+        with raises(ValueError, "attention_keys"):
+            incontext.Registrar(attention_keys=keys)
     with raises(ValueError, "pose", "bottom row"):
         model = incontext.Model.from_file(demo / "model.ply")
         camera = incontext.Camera.from_file(demo / "camera.json")

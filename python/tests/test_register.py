@@ -172,3 +172,15 @@ def test_models_from_arrays_register_like_the_file(scene, fast):
     metres = incontext.Model(model.vertices.astype(np.float64) / 1000.0, model.faces, unit_mm=1000.0)
     c = fast.register(metres, depth, camera, mask=mask)
     assert np.linalg.norm(c.t - a.t) < 0.02 * np.linalg.norm(a.t)
+
+
+def test_attention_keys_give_the_command_lines_pose_over_fewer_keys(cli, demo, scene):
+    # The same weights over 48 keys per cloud: the pose of `register --attention-keys 48`,
+    # bit for bit, and the object found.
+    model, depth, camera, mask = scene
+    report = cli_register(cli, demo, "--mask", str(demo / "mask_gt.png"), "--attention-keys", "48")
+    r = incontext.Registrar(seed=SEED, attention_keys=48).register(model, depth, camera, mask=mask)
+    assert r.R.tolist() == report["pose"]["R"]
+    assert r.t.tolist() == report["pose"]["t"]
+    assert r.verdict == "ok"
+    assert incontext.Registrar(seed=SEED, rotations=1, attention_keys="all").seed == SEED

@@ -114,6 +114,10 @@ pub struct EvalArgs {
     /// one-object second opinion).
     #[arg(long)]
     pub seg_model: Option<PathBuf>,
+    /// The pose networks' attention keys (see `register`): N per cloud or `all`; default:
+    /// each network's own.
+    #[arg(long, value_parser = crate::register::parse_attention_keys)]
+    pub attention_keys: Option<crate::register::AttentionKeys>,
     /// Pose hypotheses per registration (1 = the paper's one-shot pipeline; see `register`).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub hypotheses: u32,
@@ -266,6 +270,9 @@ impl Pipelines {
             }
             if let Some(path) = &args.seg_model {
                 builder = builder.seg_model(path);
+            }
+            if let Some(crate::register::AttentionKeys(keys)) = args.attention_keys {
+                builder = builder.attention_keys(keys);
             }
             let p = builder.build()?;
             by_head.insert(m.head.as_str(), (p, options.rotations));

@@ -175,6 +175,23 @@ pub struct LoadedPose {
     pub(crate) _file: Option<CheckpointFile>,
 }
 
+impl LoadedPose {
+    /// The same network attending over `keys` farthest-point samples of each cloud (`None`:
+    /// every point) whatever its checkpoint says ([`ic_pose::NetConfig::pooled_keys`]).
+    pub fn with_attention_keys(mut self, keys: Option<usize>) -> Result<Self> {
+        self.estimator = self
+            .estimator
+            .with_pooled_keys(keys)
+            .map_err(|e| PipelineError::input(format!("attention keys: {e}")))?;
+        Ok(self)
+    }
+
+    /// The attention keys the network runs with: `None` when every point.
+    pub fn attention_keys(&self) -> Option<usize> {
+        self.estimator.config().net.pooled_keys
+    }
+}
+
 /// Loads `path`, or the shipped network of `head` when `path` is `None`. With both, the
 /// checkpoint's head must be `head`.
 pub fn load_pose(path: Option<&Path>, head: Option<Head>) -> Result<LoadedPose> {

@@ -1185,6 +1185,8 @@ pub struct PipelineBuilder {
     segmentation: bool,
     options: PipelineOptions,
     threads: Option<usize>,
+    /// `Some`: every pose network's attention keys, whatever its checkpoint says.
+    attention_keys: Option<Option<usize>>,
 }
 
 impl Default for PipelineBuilder {
@@ -1201,6 +1203,7 @@ impl Default for PipelineBuilder {
                 ..PipelineOptions::default()
             },
             threads: None,
+            attention_keys: None,
         }
     }
 }
@@ -1255,6 +1258,16 @@ impl PipelineBuilder {
     /// builder, [`DEFAULT_ROTATIONS`], is `options.rotations` then).
     pub fn options(mut self, options: PipelineOptions) -> Self {
         self.options = options;
+        self
+    }
+
+    /// Every pose network attends over `keys` farthest-point samples of each cloud (`None`:
+    /// every point, as DCP and the paper), whatever its checkpoint says
+    /// ([`ic_pose::NetConfig::pooled_keys`]; unset: each checkpoint's own). The weights are
+    /// the same either way: fewer keys are faster (`docs/decisions.md`, "Attention over
+    /// pooled keys").
+    pub fn attention_keys(mut self, keys: Option<usize>) -> Self {
+        self.attention_keys = Some(keys);
         self
     }
 
@@ -1352,7 +1365,14 @@ impl PipelineBuilder {
                     .map_err(|e| PipelineError::internal(format!("starting {t} threads: {e}")))?,
             ),
         };
-        let pose = crate::models::load_pose(self.pose_model.as_deref(), self.head)?;
+        let keys = |p: crate::models::LoadedPose| match self.attention_keys {
+            Some(k) => p.with_attention_keys(k),
+            None => Ok(p),
+        };
+        let pose = keys(crate::models::load_pose(
+            self.pose_model.as_deref(),
+            self.head,
+        )?)?;
         let (seg, one_object) = if self.segmentation {
             let one_object = match self.seg_model {
                 Some(_) => None,
@@ -1368,7 +1388,9 @@ impl PipelineBuilder {
         let head = pose.estimator.config().net.head;
         let second = match (self.second_pose, &self.second_pose_model, &self.pose_model) {
             (false, _, _) | (true, None, Some(_)) => None,
-            (true, path, _) => crate::models::load_pose_second(path.as_deref(), head)?,
+            (true, path, _) => crate::models::load_pose_second(path.as_deref(), head)?
+                .map(keys)
+                .transpose()?,
         };
         let mut pipeline = Pipeline::new(pose, seg, self.options);
         if let Some(second) = second {
@@ -1502,6 +1524,8 @@ impl Pipeline {
             "seg_one_object_model": self.seg_one_object_source(),
             "model_points": m,
             "observed_points": n,
+            "attention_keys": self.pose.attention_keys(),
+            "second_attention_keys": self.pose_second.as_ref().map(|p| p.attention_keys()),
             "pipeline": self.options,
             "post": self.post_config(),
         })

@@ -117,6 +117,11 @@ pub struct NetworkArgs {
     /// one-object second opinion; e.g. models/seg-cpu.safetensors for one object per scene).
     #[arg(long)]
     pub seg_model: Option<PathBuf>,
+    /// The pose networks' attention keys: N farthest-point samples of each cloud (fewer is
+    /// faster, same weights) or `all` (every point, the paper's transformer); default: each
+    /// network's own setting.
+    #[arg(long, value_parser = parse_attention_keys)]
+    pub attention_keys: Option<AttentionKeys>,
     /// Pose hypotheses (each its own point draw, network run and refinement; the one that
     /// explains the most object points wins). 1 = the paper's one-shot pipeline.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
@@ -158,6 +163,22 @@ pub struct NetworkArgs {
     /// wins. Fewer is faster when nothing is `ok`; 0 = every instance that fits.
     #[arg(long, default_value_t = PipelineOptions::default().instance_tries)]
     pub instance_tries: usize,
+}
+
+/// `--attention-keys`: a count of keys per cloud, or `None` for every point.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct AttentionKeys(pub Option<usize>);
+
+pub fn parse_attention_keys(s: &str) -> std::result::Result<AttentionKeys, String> {
+    if s == "all" {
+        return Ok(AttentionKeys(None));
+    }
+    match s.parse::<usize>() {
+        Ok(n) if n >= 1 => Ok(AttentionKeys(Some(n))),
+        _ => Err(format!(
+            "{s:?} is not a number of attention keys (a count ≥ 1, or all)"
+        )),
+    }
 }
 
 pub fn parse_rotations(s: &str) -> std::result::Result<usize, String> {
@@ -219,6 +240,9 @@ impl NetworkArgs {
         }
         if let Some(path) = &self.seg_model {
             b = b.seg_model(path);
+        }
+        if let Some(AttentionKeys(keys)) = self.attention_keys {
+            b = b.attention_keys(keys);
         }
         b
     }

@@ -471,6 +471,7 @@ fn train_pose(a: &PoseTrainArgs, seed: u64) -> Result<Value> {
         emb_dims: None,
         ff_dims: None,
         k: None,
+        pooled_keys: None,
         model_points: a.model_points,
         observed_points: a.observed_points,
         learning_rate: Some(c.learning_rate),

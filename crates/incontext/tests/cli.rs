@@ -108,6 +108,48 @@ fn the_real_object_weights_beside_the_default_load_and_find_the_pose() {
     );
 }
 
+/// `--attention-keys N` runs the shipped networks over N keys per cloud (the same weights)
+/// and still finds the pose; the builder applies it to both pose networks and says so in the
+/// configuration every run logs; a count of 0 or a word is a bad flag.
+#[test]
+fn attention_keys_run_the_same_weights_over_fewer_keys_and_still_find_the_pose() {
+    let sc = SmallScene::new();
+    let mut args = register_args(&sc, "--attention-keys", "48");
+    args.extend(["--json", "-q", "--seed", "1"].map(String::from));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let o = check(&args, 0, &[]);
+    let pose = pose_of(&json_stdout(&o)["pose"]);
+    let (err, diameter) = add_s(&sc.path("model.ply"), &pose, &sc.truth);
+    assert!(
+        err < 0.1 * diameter,
+        "ADD-S {err} mm, diameter {diameter} mm"
+    );
+    check_register(
+        &sc,
+        "--attention-keys",
+        "0",
+        2,
+        &["--attention-keys", "≥ 1, or all"],
+    );
+    check_register(&sc, "--attention-keys", "most", 2, &["--attention-keys"]);
+    let keys = |b: incontext::PipelineBuilder| {
+        let d = b.segmentation(false).build().unwrap().describe();
+        (
+            d["attention_keys"].clone(),
+            d["second_attention_keys"].clone(),
+        )
+    };
+    let builder = incontext::Pipeline::builder;
+    assert_eq!(
+        keys(builder().attention_keys(Some(48))),
+        (json!(48), json!(48))
+    );
+    assert_eq!(
+        keys(builder().attention_keys(None)),
+        (json!(null), json!(null))
+    );
+}
+
 #[test]
 fn render_writes_depth_and_mask_that_match_the_scene() {
     let sc = SmallScene::new();

@@ -103,6 +103,15 @@ pub struct NetConfig {
     pub ot: OtConfig,
     /// Batch-norm momentum of the running statistics.
     pub bn_momentum: f64,
+    /// Attention over pooled keys: every point still queries, but the transformer's
+    /// self-attention keys and its encoder (whose output is the other cloud's cross-attention
+    /// memory) use only this many points of each cloud, chosen by farthest-point sampling in
+    /// the cloud's coordinates ([`crate::knn::farthest_point_indices`]). `None` (DCP, the
+    /// paper): every point. The weights are the same either way, so a network trained with
+    /// full attention runs (and fine-tunes) with pooled keys; the attention's cost falls from
+    /// O((M + N)²) to O((M + N)·T).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pooled_keys: Option<usize>,
 }
 
 impl NetConfig {
@@ -128,6 +137,9 @@ impl NetConfig {
         }
         if !(0.0..=1.0).contains(&self.bn_momentum) {
             return bad("bn_momentum must be in [0, 1]".into());
+        }
+        if self.pooled_keys == Some(0) {
+            return bad("pooled_keys must be ≥ 1 (or absent: every point)".into());
         }
         Ok(())
     }
@@ -177,6 +189,7 @@ impl PoseConfig {
                 scale_scores: true,
                 ot: OtConfig::default(),
                 bn_momentum: 0.1,
+                pooled_keys: None,
             },
             train: TrainConfig {
                 model_points: 1024,
@@ -209,6 +222,7 @@ impl PoseConfig {
                 scale_scores: true,
                 ot: OtConfig::default(),
                 bn_momentum: 0.1,
+                pooled_keys: None,
             },
             train: TrainConfig {
                 model_points: 384,
@@ -239,6 +253,7 @@ impl PoseConfig {
                     ..OtConfig::default()
                 },
                 bn_momentum: 0.1,
+                pooled_keys: None,
             },
             train: TrainConfig {
                 model_points: 32,

@@ -225,6 +225,23 @@ impl PoseEstimator {
         Ok(self)
     }
 
+    /// The same weights attending over `keys` farthest-point samples of each cloud instead of
+    /// every point (`None`: every point; see [`crate::NetConfig::pooled_keys`]): to run a
+    /// network trained with full attention the cheaper way, or back. Kept model sides are
+    /// dropped (they depend on it). Errors on `Some(0)`.
+    pub fn with_pooled_keys(mut self, keys: Option<usize>) -> Result<Self> {
+        if keys == Some(0) {
+            return Err(PoseError::Config("pooled keys must be at least 1".into()));
+        }
+        self.net.set_pooled_keys(keys);
+        self.config.net.pooled_keys = keys;
+        if let Some(cache) = &self.model_sides {
+            let budget = cache.lock().unwrap_or_else(|e| e.into_inner()).budget;
+            self = self.keeping_model_sides(budget);
+        }
+        Ok(self)
+    }
+
     pub fn net(&self) -> &PoseNet {
         &self.net
     }

@@ -52,6 +52,47 @@ pub fn knn_indices(points: &[Vec3], k: usize) -> Vec<u32> {
     out
 }
 
+/// `count` indices of `points` chosen by farthest-point sampling: the first is the point
+/// farthest from the centroid, each next one the point farthest from all chosen so far (ties
+/// by the lower index). Depends only on the distances between the points (and the centroid),
+/// so a rotated copy of a cloud gets the same indices up to float rounding. Returns every
+/// index, in order, when `count ≥ points.len()`. Units: whatever the points are in.
+pub fn farthest_point_indices(points: &[Vec3], count: usize) -> Vec<u32> {
+    let n = points.len();
+    if count >= n {
+        return (0..n as u32).collect();
+    }
+    if count == 0 {
+        return Vec::new();
+    }
+    let centre = points.iter().copied().sum::<Vec3>() / n as f32;
+    let farthest = |d: &[f32]| {
+        let mut best = (0usize, f32::NEG_INFINITY);
+        for (i, &v) in d.iter().enumerate() {
+            if v > best.1 {
+                best = (i, v);
+            }
+        }
+        best.0
+    };
+    let from_centre: Vec<f32> = points.iter().map(|p| p.distance_squared(centre)).collect();
+    let mut next = farthest(&from_centre);
+    // Squared distance of each point to the nearest chosen one.
+    let mut nearest = vec![f32::INFINITY; n];
+    let mut chosen = Vec::with_capacity(count);
+    for _ in 0..count {
+        chosen.push(next as u32);
+        let p = points[next];
+        for (d, q) in nearest.iter_mut().zip(points) {
+            *d = d.min(p.distance_squared(*q));
+        }
+        // A chosen point's own distance is 0, so it is never chosen again while others remain.
+        nearest[next] = f32::NEG_INFINITY;
+        next = farthest(&nearest);
+    }
+    chosen
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -84,5 +125,42 @@ mod tests {
         let idx = knn_indices(&pts, 3);
         assert_eq!(&idx[0..3], &[0, 1, 2]);
         assert_eq!(&idx[3 * 3..3 * 3 + 3], &[3, 2, 4]);
+    }
+
+    #[test]
+    fn farthest_points_start_far_from_the_centre_spread_out_and_ignore_rotation() {
+        // A 5×5×5 grid with one point pulled out: it is the first, then its farthest corner.
+        let mut pts: Vec<Vec3> = (0..125)
+            .map(|i| Vec3::new((i % 5) as f32, (i / 5 % 5) as f32, (i / 25) as f32))
+            .collect();
+        pts[0] = Vec3::new(-3.0, -3.0, -3.0);
+        let idx = farthest_point_indices(&pts, 10);
+        assert_eq!(idx.len(), 10);
+        assert_eq!(idx[0], 0);
+        assert_eq!(idx[1], 124);
+        let mut unique = idx.clone();
+        unique.sort_unstable();
+        unique.dedup();
+        assert_eq!(unique.len(), 10, "no index twice: {idx:?}");
+        // Distances alone decide: a rotated and shifted cloud (no ties) gets the same indices.
+        let mut state = 7u64;
+        let mut unit = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let cloud: Vec<Vec3> = (0..300)
+            .map(|_| Vec3::new(unit(), unit(), unit()))
+            .collect();
+        let turn = glam::Quat::from_axis_angle(Vec3::new(1.0, 2.0, 3.0).normalize(), 1.1);
+        let moved: Vec<Vec3> = cloud.iter().map(|&p| turn * p + Vec3::splat(5.0)).collect();
+        let picked = farthest_point_indices(&cloud, 32);
+        assert_eq!(farthest_point_indices(&moved, 32), picked);
+        assert_eq!(
+            farthest_point_indices(&pts, 200),
+            (0..125).collect::<Vec<u32>>()
+        );
+        assert!(farthest_point_indices(&pts, 0).is_empty());
     }
 }

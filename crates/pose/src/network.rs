@@ -12,7 +12,7 @@ use ic_geometry::Assignment;
 use crate::config::{Head, NetConfig, OtLoss};
 use crate::dgcnn::Dgcnn;
 use crate::layers::log_softmax_last;
-use crate::transformer::{ModelSide, Transformer};
+use crate::transformer::{KeyRows, ModelSide, Transformer};
 use crate::{PoseError, Result, knn, sinkhorn};
 
 /// A batch of (model, observed) point-set pairs ready for the network: centred,
@@ -281,8 +281,35 @@ impl PoseNet {
         self.cfg.k = k;
     }
 
+    /// Attends over `keys` farthest-point samples of each cloud instead of every point
+    /// (`None`: every point; see [`NetConfig::pooled_keys`]). No weight depends on it.
+    pub fn set_pooled_keys(&mut self, keys: Option<usize>) {
+        self.cfg.pooled_keys = keys;
+    }
+
     pub fn config(&self) -> &NetConfig {
         &self.cfg
+    }
+
+    /// The attention key rows of channel-first clouds `coords` `[B, 3, P]`: the
+    /// [`NetConfig::pooled_keys`] farthest-point samples of each, or `None` (every point) when
+    /// unset or not fewer than P.
+    fn key_rows(&self, coords: &Tensor) -> CResult<Option<KeyRows>> {
+        let (_, _, p) = coords.dims3()?;
+        let Some(t) = self.cfg.pooled_keys.filter(|&t| t < p) else {
+            return Ok(None);
+        };
+        let clouds = coords.to_vec3::<f32>()?;
+        let rows: Vec<Vec<u32>> = clouds
+            .iter()
+            .map(|c| {
+                let points: Vec<Vec3> = (0..p)
+                    .map(|i| Vec3::new(c[0][i], c[1][i], c[2][i]))
+                    .collect();
+                knn::farthest_point_indices(&points, t)
+            })
+            .collect();
+        KeyRows::new(&rows, p, coords.device()).map(Some)
     }
 
     /// The DGCNN features `(θx [B, M, d], θy [B, N, d])`.
@@ -305,7 +332,11 @@ impl PoseNet {
     /// `(fx [B, M, d], fy [B, N, d])`.
     pub fn embed(&self, batch: &PairBatch, train: bool) -> CResult<(Tensor, Tensor)> {
         let (tx, ty) = self.encode(batch, train)?;
-        self.transformer.forward(&tx, &ty)
+        let (kx, ky) = (
+            self.key_rows(&batch.model)?,
+            self.key_rows(&batch.observed)?,
+        );
+        self.transformer.forward(&tx, &ty, kx.as_ref(), ky.as_ref())
     }
 
     fn score_scale(&self) -> f64 {
@@ -356,7 +387,8 @@ impl PoseNet {
     /// can be kept and reused against any observed cloud ([`PoseNet::forward_sweep_side`]).
     pub fn sweep_model_side(&self, batch: &SweepBatch) -> CResult<ModelSide> {
         let tx = self.encode_cloud(&batch.model, &batch.model_graph, false)?;
-        self.transformer.model_side(&tx)
+        self.transformer
+            .model_side(&tx, self.key_rows(&batch.model)?.as_ref())
     }
 
     /// [`PoseNet::forward_sweep_pruned`] with the model side computed beforehand by
@@ -381,7 +413,10 @@ impl PoseNet {
             Some((idx, kept)) => (side.select(&idx)?, kept),
             None => (side.clone(), (0..b).collect()),
         };
-        let (fx, fy) = self.transformer.forward_model_side(&side, &ty)?;
+        let ky = self.key_rows(&batch.observed)?;
+        let (fx, fy) = self
+            .transformer
+            .forward_model_side(&side, &ty, ky.as_ref())?;
         Ok((self.head(&fx, &fy)?, kept))
     }
 

@@ -6,13 +6,65 @@
 //! fy = θy + φ(θy, θx)); the paper (Dang et al., CVPR 2021) uses one block, 4 heads, ff 1024.
 //! Point-major layout `[B, P, d]`; LayerNorm is written from tensor ops, the attention itself
 //! is the fused kernel of [`ic_nn::ops::attention`].
+//!
+//! With [`KeyRows`] (the `pooled_keys` setting) every point still queries, but the keys and
+//! values of the decoder's self-attention and the whole encoder (the other direction's
+//! memory) use only the chosen rows of each cloud: the same weights, attention cost
+//! O(P·T) instead of O(P²).
 
-use candle_core::{Module, Result, Tensor};
+use candle_core::{Device, Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
 use crate::config::NetConfig;
 use crate::layers::{Dense, LayerNorm};
 use ic_nn::ops::attention::multi_head_attention;
+
+/// The rows of each cloud's features `[B, P, d]` that serve as attention keys: `T` per cloud,
+/// the same count in every cloud of a batch.
+#[derive(Clone, Debug)]
+pub struct KeyRows {
+    /// `[B·T]` u32: row `b·P + i` of the flattened `[B·P, d]` features.
+    flat: Tensor,
+    per_cloud: usize,
+}
+
+impl KeyRows {
+    /// `indices[b]`: the key rows of cloud `b` (each `< points`, all of one length).
+    pub fn new(indices: &[Vec<u32>], points: usize, device: &Device) -> Result<Self> {
+        let per_cloud = indices.first().map_or(0, Vec::len);
+        let mut flat = Vec::with_capacity(indices.len() * per_cloud);
+        for (b, rows) in indices.iter().enumerate() {
+            if rows.len() != per_cloud || rows.iter().any(|&i| i as usize >= points) {
+                candle_core::bail!(
+                    "key rows of cloud {b}: {} rows, want {per_cloud} below {points}",
+                    rows.len()
+                );
+            }
+            flat.extend(rows.iter().map(|&i| (b * points) as u32 + i));
+        }
+        let len = flat.len();
+        Ok(KeyRows {
+            flat: Tensor::from_vec(flat, len, device)?,
+            per_cloud,
+        })
+    }
+
+    /// The key rows of `t` `[B, P, d]`: `[B, T, d]`.
+    pub fn gather(&self, t: &Tensor) -> Result<Tensor> {
+        let (b, p, d) = t.dims3()?;
+        t.reshape((b * p, d))?
+            .index_select(&self.flat, 0)?
+            .reshape((b, self.per_cloud, d))
+    }
+}
+
+/// `t`'s key rows, or `t` itself when every row is a key.
+fn keys_of(t: &Tensor, keys: Option<&KeyRows>) -> Result<Tensor> {
+    match keys {
+        Some(k) => k.gather(t),
+        None => Ok(t.clone()),
+    }
+}
 
 /// Multi-head scaled dot-product attention.
 #[derive(Clone, Debug)]
@@ -142,14 +194,16 @@ impl DecoderLayer {
         })
     }
 
-    pub fn forward(&self, x: &Tensor, memory: &Tensor) -> Result<Tensor> {
-        self.after_self_attention(&self.self_attention(x)?, memory)
+    /// `keys`: the rows of `x` its self-attention attends to (`None`: all).
+    pub fn forward(&self, x: &Tensor, keys: Option<&KeyRows>, memory: &Tensor) -> Result<Tensor> {
+        self.after_self_attention(&self.self_attention(x, keys)?, memory)
     }
 
-    /// The first sub-layer, `x + SelfAttn(LN(x))`: it does not see the memory.
-    pub fn self_attention(&self, x: &Tensor) -> Result<Tensor> {
+    /// The first sub-layer, `x + SelfAttn(LN(x))` over the key rows `keys` of `LN(x)` (all
+    /// when `None`): it does not see the memory.
+    pub fn self_attention(&self, x: &Tensor, keys: Option<&KeyRows>) -> Result<Tensor> {
         let h = self.ln1.forward(x)?;
-        x + self.self_attn.forward(&h, &h)?
+        x + self.self_attn.forward(&h, &keys_of(&h, keys)?)?
     }
 
     /// The rest of the layer (cross-attention, feed-forward, final LayerNorm) on the output of
@@ -251,25 +305,42 @@ impl Transformer {
         })
     }
 
-    /// `φ(a, b)`: `a` attends to the encoded `b`. Both `[B, P, d]`.
-    pub fn phi(&self, a: &Tensor, b: &Tensor) -> Result<Tensor> {
-        self.decoder.forward(a, &self.encoder.forward(b)?)
+    /// `φ(a, b)`: `a` attends to the encoded `b`. Both `[B, P, d]`; `ka`, `kb` their key rows
+    /// (`None`: every point).
+    pub fn phi(
+        &self,
+        a: &Tensor,
+        b: &Tensor,
+        ka: Option<&KeyRows>,
+        kb: Option<&KeyRows>,
+    ) -> Result<Tensor> {
+        self.decoder.forward(a, ka, &self.memory(b, kb)?)
     }
 
-    /// `(θx + φ(θx, θy), θy + φ(θy, θx))`.
-    pub fn forward(&self, tx: &Tensor, ty: &Tensor) -> Result<(Tensor, Tensor)> {
-        let fx = (tx + self.phi(tx, ty)?)?;
-        let fy = (ty + self.phi(ty, tx)?)?;
+    /// The encoder's output on the key rows of `b`: the memory the other cloud attends to.
+    fn memory(&self, b: &Tensor, kb: Option<&KeyRows>) -> Result<Tensor> {
+        self.encoder.forward(&keys_of(b, kb)?)
+    }
+
+    /// `(θx + φ(θx, θy), θy + φ(θy, θx))`, with the key rows `kx`, `ky` of each cloud.
+    pub fn forward(
+        &self,
+        tx: &Tensor,
+        ty: &Tensor,
+        kx: Option<&KeyRows>,
+        ky: Option<&KeyRows>,
+    ) -> Result<(Tensor, Tensor)> {
+        let fx = (tx + self.phi(tx, ty, kx, ky)?)?;
+        let fy = (ty + self.phi(ty, tx, ky, kx)?)?;
         Ok((fx, fy))
     }
 
     /// The part of [`Transformer::forward`] that depends on the model clouds `tx`
-    /// (`[B, M, d]`) alone, for [`Transformer::forward_model_side`].
-    pub fn model_side(&self, tx: &Tensor) -> Result<ModelSide> {
-        let self_attended = self.decoder.self_attention(tx)?;
+    /// (`[B, M, d]`, key rows `kx`) alone, for [`Transformer::forward_model_side`].
+    pub fn model_side(&self, tx: &Tensor, kx: Option<&KeyRows>) -> Result<ModelSide> {
+        let self_attended = self.decoder.self_attention(tx, kx)?;
         let cross_queries = self.decoder.cross_queries(&self_attended)?;
-        let (memory_keys, memory_values) =
-            self.decoder.cross_keys_values(&self.encoder.forward(tx)?)?;
+        let (memory_keys, memory_values) = self.decoder.cross_keys_values(&self.memory(tx, kx)?)?;
         Ok(ModelSide {
             features: tx.clone(),
             self_attended,
@@ -286,7 +357,13 @@ impl Transformer {
     /// computed once and shared by the copies. Returns `(fx [B, M, d], fy [B, N, d])`, the
     /// same values as `forward` on the repeated batch (tested through
     /// [`crate::PoseNet::forward_sweep`]).
-    pub fn forward_model_side(&self, side: &ModelSide, ty: &Tensor) -> Result<(Tensor, Tensor)> {
+    /// `ky`: the observed cloud's key rows.
+    pub fn forward_model_side(
+        &self,
+        side: &ModelSide,
+        ty: &Tensor,
+        ky: Option<&KeyRows>,
+    ) -> Result<(Tensor, Tensor)> {
         let b = side.copies()?;
         if ty.dim(0)? != 1 {
             candle_core::bail!(
@@ -298,15 +375,15 @@ impl Transformer {
             let (_, p, d) = t.dims3()?;
             t.broadcast_as((b, p, d))?.contiguous()
         };
-        let (ky, vy) = self.decoder.cross_keys_values(&self.encoder.forward(ty)?)?;
+        let (mk, mv) = self.decoder.cross_keys_values(&self.memory(ty, ky)?)?;
         let fx = (&side.features
             + self.decoder.after_cross_queries(
                 &side.self_attended,
                 &side.cross_queries,
-                &repeat(&ky)?,
-                &repeat(&vy)?,
+                &repeat(&mk)?,
+                &repeat(&mv)?,
             )?)?;
-        let self_y = self.decoder.self_attention(ty)?;
+        let self_y = self.decoder.self_attention(ty, ky)?;
         let qy = self.decoder.cross_queries(&self_y)?;
         let fy = (repeat(ty)?
             + self.decoder.after_cross_queries(

@@ -114,8 +114,14 @@ fn gradients_of(trainer: &Trainer, pairs: &[Pair]) -> (f32, HashMap<String, f32>
 
 #[test]
 fn every_parameter_receives_a_gradient() {
-    for head in [Head::Softmax, Head::Ot] {
-        let trainer = Trainer::new(tiny(head), 3).unwrap();
+    for (head, pooled) in [
+        (Head::Softmax, None),
+        (Head::Ot, None),
+        (Head::Softmax, Some(6)),
+    ] {
+        let mut cfg = tiny(head);
+        cfg.net.pooled_keys = pooled;
+        let trainer = Trainer::new(cfg, 3).unwrap();
         let pairs = vec![pair(1, 32, 24, 18), pair(2, 32, 24, 20)];
         let (loss, norms) = gradients_of(&trainer, &pairs);
         assert!(loss.is_finite() && loss > 0.0, "{head:?}: loss {loss}");
@@ -159,7 +165,12 @@ fn degenerate_inputs_give_finite_loss_and_gradients() {
 }
 
 fn overfit(head: Head) -> (f32, f32) {
+    overfit_with(head, None)
+}
+
+fn overfit_with(head: Head, pooled_keys: Option<usize>) -> (f32, f32) {
     let mut cfg = tiny(head);
+    cfg.net.pooled_keys = pooled_keys;
     cfg.net.emb_dims = 32;
     cfg.net.ff_dims = 64;
     cfg.train.learning_rate = 3e-3;
@@ -179,6 +190,62 @@ fn overfit(head: Head) -> (f32, f32) {
 fn tiny_model_overfits_one_batch_softmax() {
     let (first, last) = overfit(Head::Softmax);
     assert!(last < 0.1 * first, "softmax loss {first} → {last}");
+}
+
+#[test]
+fn tiny_model_with_pooled_keys_overfits_one_batch() {
+    // 8 of the 32 model and 24 observed points as keys: the queries still see the other
+    // cloud through them.
+    let (first, last) = overfit_with(Head::Softmax, Some(8));
+    assert!(last < 0.1 * first, "pooled softmax loss {first} → {last}");
+}
+
+/// Pooled keys change nothing when there are not fewer points than keys, change the output
+/// when there are, and a configuration without the setting (every checkpoint written before
+/// it) reads as every point.
+#[test]
+fn pooled_keys_are_full_attention_when_not_fewer_than_the_points() {
+    let trainer = Trainer::new(tiny(Head::Softmax), 21).unwrap();
+    let p = pair(61, 32, 24, 20);
+    let log_p = |keys: Option<usize>| {
+        let est = trainer.estimator().with_pooled_keys(keys).unwrap();
+        est.infer(&p.model, &p.observed)
+            .unwrap()
+            .log_p
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap()
+    };
+    let full = log_p(None);
+    assert_eq!(
+        log_p(Some(32)),
+        full,
+        "32 keys of 32 model and 24 observed points"
+    );
+    let pooled = log_p(Some(8));
+    assert!(pooled.iter().all(|v| v.is_finite()));
+    let moved = full
+        .iter()
+        .zip(&pooled)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(moved > 1e-3, "8 keys of 24–32 points left log P unchanged");
+    assert!(trainer.estimator().with_pooled_keys(Some(0)).is_err());
+    let mut json = serde_json::to_value(tiny(Head::Softmax)).unwrap();
+    assert!(
+        json["net"].get("pooled_keys").is_none(),
+        "unset is not written"
+    );
+    json["net"]["pooled_keys"] = 16.into();
+    let read: PoseConfig = serde_json::from_value(json.clone()).unwrap();
+    assert_eq!(read.net.pooled_keys, Some(16));
+    json["net"].as_object_mut().unwrap().remove("pooled_keys");
+    let read: PoseConfig = serde_json::from_value(json).unwrap();
+    assert_eq!(read.net.pooled_keys, None);
+    let mut zero = tiny(Head::Softmax);
+    zero.net.pooled_keys = Some(0);
+    assert!(zero.validate().is_err());
 }
 
 #[test]
@@ -448,15 +515,20 @@ fn ot_loss_balanced_averages_matches_and_bins_separately() {
 fn rotation_sweep_matches_the_explicit_batch_of_rotated_copies() {
     // The sweep encodes the observed cloud once and shares the model's k-NN graph; the
     // log-probabilities and poses must be those of the plain batch of (R·x, y) pairs.
+    // With pooled keys too: each copy's keys are its own farthest points, as in the batch.
     let rotations = ic_geometry::rotations::rotation_group(12).unwrap();
-    for head in [Head::Softmax, Head::Ot] {
+    for (head, pooled) in [
+        (Head::Softmax, None),
+        (Head::Ot, None),
+        (Head::Softmax, Some(10)),
+    ] {
         let mut trainer = Trainer::new(tiny(head), 5).unwrap();
         let train = vec![pair(31, 32, 24, 20), pair(32, 32, 24, 20)];
         let (pp, aa) = refs(&train);
         for _ in 0..3 {
             trainer.step_pairs(&pp, &aa).unwrap();
         }
-        let est = trainer.estimator();
+        let est = trainer.estimator().with_pooled_keys(pooled).unwrap();
         let p = pair(33, 40, 30, 25);
         let copies: Vec<Vec<Vec3>> = rotations
             .iter()

@@ -62,8 +62,15 @@ impl Network for PoseNet {
     fn read_config(path: &Path) -> Result<PoseConfig, PoseError> {
         ic_pose::checkpoint::read_config(path)
     }
+    /// The same weights: every setting equal but `pooled_keys`, which changes which points
+    /// the attention reads, not a parameter's shape (a network trained with full attention
+    /// fine-tunes with pooled keys).
     fn same_network(a: &PoseConfig, b: &PoseConfig) -> bool {
-        a.net == b.net
+        let keys = |c: &PoseConfig| ic_pose::NetConfig {
+            pooled_keys: None,
+            ..c.net.clone()
+        };
+        keys(a) == keys(b)
     }
     fn learning_rate(config: &PoseConfig) -> f64 {
         config.train.learning_rate
@@ -237,6 +244,11 @@ pub struct TrainArgs {
     pub ff_dims: Option<usize>,
     #[arg(long)]
     pub k: Option<usize>,
+    /// Attend over this many farthest-point samples of each cloud instead of every point
+    /// (`NetConfig::pooled_keys`; the weights do not change shape, so `--init` from a network
+    /// trained with full attention works). Default: the preset's or the `--init` checkpoint's.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    pub pooled_keys: Option<u64>,
     #[arg(long)]
     pub model_points: Option<usize>,
     #[arg(long)]
@@ -799,6 +811,9 @@ pub fn apply_overrides(cfg: &mut PoseConfig, a: &TrainArgs) {
     }
     if let Some(v) = a.k {
         cfg.net.k = v;
+    }
+    if let Some(v) = a.pooled_keys {
+        cfg.net.pooled_keys = Some(v as usize);
     }
     if let Some(v) = a.model_points {
         cfg.train.model_points = v;

@@ -31,6 +31,7 @@ fn pose_args(out: &Path, iterations: u64, resume: bool) -> ic_train::pose::Train
         emb_dims: None,
         ff_dims: None,
         k: None,
+        pooled_keys: None,
         model_points: None,
         observed_points: None,
         learning_rate: None,

@@ -44,6 +44,10 @@ pub const SIZES: [(usize, usize); 5] = [
     (2048, 2048),
 ];
 
+/// The pooled attention keys of the speed table's extra softmax row (`ours-softmax-keysN`)
+/// when the shipped weights attend over every point (`ic_pose::NetConfig::pooled_keys`).
+pub const BENCH_POOLED_KEYS: usize = 64;
+
 /// How a size is written in tables and in the peers' `--points`: `n`, or `mxn`.
 pub fn size_label((m, n): (usize, usize)) -> String {
     if m == n {
@@ -309,30 +313,55 @@ pub fn measure(
             Ok((read_points(&case.source())?, read_points(&case.target())?))
         })
         .collect::<Result<Vec<_>>>()?;
-    let total = (SIZES.len() * 4 + 1 + 2 + 2) as u64;
+    let total = (SIZES.len() * 5 + 1 + 2 + 2) as u64;
     let bar = crate::bench::common::progress_bar(total, "speed");
 
     // Registration at each size.
     let mut ours = Vec::new();
     for head in [Head::Softmax, Head::Ot] {
         let (mut est, note) = estimator(root, head, seed)?;
+        // The softmax weights' one-shot pose with the other attention too: over
+        // `BENCH_POOLED_KEYS` keys when they were trained with every point, else over every
+        // point.
+        let mut other = match (head, est.config().net.pooled_keys) {
+            (Head::Ot, _) => None,
+            (Head::Softmax, None) => Some((
+                format!("ours-softmax-keys{BENCH_POOLED_KEYS}"),
+                estimator(root, head, seed)?
+                    .0
+                    .with_pooled_keys(Some(BENCH_POOLED_KEYS))?,
+            )),
+            (Head::Softmax, Some(_)) => Some((
+                "ours-softmax-all-keys".to_string(),
+                estimator(root, head, seed)?.0.with_pooled_keys(None)?,
+            )),
+        };
         for &(m, n) in &SIZES {
             let resampled: Vec<_> = clouds
                 .iter()
                 .enumerate()
                 .map(|(i, (source, target))| resample_pair((source, target), (m, n), seed, i))
                 .collect();
-            for refine in [Refine::None, Refine::Icp] {
+            let mut runs: Vec<(String, Refine, bool)> = [Refine::None, Refine::Icp]
+                .into_iter()
+                .map(|refine| {
+                    let icp = if refine == Refine::Icp { "-icp" } else { "" };
+                    (format!("ours-{}{icp}", head.as_str()), refine, false)
+                })
+                .collect();
+            if let Some((name, _)) = &other {
+                runs.push((name.clone(), Refine::None, true));
+            }
+            for (method, refine, other_keys) in runs {
+                let est = match (&mut other, other_keys) {
+                    (Some((_, e)), true) => e,
+                    _ => &mut est,
+                };
                 est.recovery.refine = refine;
-                let method = format!(
-                    "ours-{}{}",
-                    head.as_str(),
-                    if refine == Refine::Icp { "-icp" } else { "" }
-                );
                 bar.set_message(format!("{method} n={}", size_label((m, n))));
                 // A failed recovery (untrained weights can give degenerate matches) still ran
                 // the network: time it, and say so.
-                let (mut timed, failure) = time_estimates(&est, &method, repeats, &resampled);
+                let (mut timed, failure) = time_estimates(est, &method, repeats, &resampled);
                 timed.note = match (note.clone(), failure) {
                     (n, None) => n,
                     (n, Some(f)) => Some(
