@@ -16,11 +16,33 @@ pub struct ExportWeightsArgs {
     /// `--seg-model` load).
     #[arg(long)]
     out: PathBuf,
+    /// Pose networks: write the configuration attending over this many farthest-point
+    /// samples of each cloud (`all`: every point) with the same weights; the checkpoint may
+    /// then be weights-only too.
+    #[arg(long)]
+    pooled_keys: Option<String>,
 }
 
 pub fn run(args: ExportWeightsArgs) -> Result<()> {
     let size = |p: &std::path::Path| std::fs::metadata(p).map(|m| m.len()).unwrap_or(0);
     let before = size(&args.checkpoint);
+    if let Some(keys) = &args.pooled_keys {
+        let keys = match keys.as_str() {
+            "all" => None,
+            n => Some(n.parse::<usize>().map_err(|_| {
+                anyhow::anyhow!("--pooled-keys {n:?}: a number of keys per cloud, or all")
+            })?),
+        };
+        ic_train::set_pooled_keys(&args.checkpoint, &args.out, keys)?;
+        println!(
+            "pose weights of {} ({} bytes) written to {} ({} bytes), pooled keys {keys:?}",
+            args.checkpoint.display(),
+            before,
+            args.out.display(),
+            size(&args.out)
+        );
+        return Ok(());
+    }
     let kind = ic_train::export_weights(&args.checkpoint, &args.out)?;
     println!(
         "{:?} weights of {} ({} bytes) written to {} ({} bytes)",

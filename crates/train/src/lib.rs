@@ -438,6 +438,28 @@ pub fn export_weights(checkpoint: &Path, out: &Path) -> anyhow::Result<Checkpoin
     Ok(kind)
 }
 
+/// Writes the pose network of `checkpoint` (weights-only or training) to `out` atomically as a
+/// weights-only file whose configuration attends over `keys` farthest-point samples of each
+/// cloud (`None`: every point; `ic_pose::NetConfig::pooled_keys`): the same weights, the
+/// inference setting changed. `out` may be `checkpoint` itself.
+///
+/// Errors (naming the file): unreadable, not a pose checkpoint, `Some(0)` keys, or tensors
+/// that do not fit its configuration.
+pub fn set_pooled_keys(checkpoint: &Path, out: &Path, keys: Option<usize>) -> anyhow::Result<()> {
+    let mut config = ic_pose::checkpoint::read_config(checkpoint)
+        .with_context(|| format!("reading {}", checkpoint.display()))?;
+    config.net.pooled_keys = keys;
+    config
+        .validate()
+        .with_context(|| format!("{}: pooled keys {keys:?}", checkpoint.display()))?;
+    let mut trainer = PoseTrainer::new(config, 0)?;
+    trainer
+        .load_weights(checkpoint)
+        .with_context(|| format!("reading {}", checkpoint.display()))?;
+    trainer.save_weights(out)?;
+    Ok(())
+}
+
 /// [`Trainer::resume`] from `checkpoint`, then [`Trainer::save_weights`] to `out`.
 fn resave_weights<N: Network>(checkpoint: &Path, out: &Path) -> anyhow::Result<()>
 where

@@ -828,6 +828,42 @@ fn exported_weights_are_the_checkpoints_weights_without_the_optimiser_state() {
     }
 }
 
+/// The shipped networks get their attention keys this way: the same tensors, bit for bit,
+/// the configuration changed, from a weights-only or a training checkpoint; a segmentation
+/// checkpoint or zero keys is refused and nothing is written.
+#[test]
+fn pooled_keys_are_written_into_the_configuration_of_the_same_weights() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("pose");
+    ic_train::pose::train(&pose_args(&run, 2, false), control(never())).unwrap();
+    let best = run.join("best.safetensors");
+    let keyed = dir.path().join("keyed.safetensors");
+    let load = |p: &Path| candle_core::safetensors::load(p, &candle_core::Device::Cpu).unwrap();
+    for source in [best.clone(), run.join("latest.safetensors")] {
+        ic_train::set_pooled_keys(&source, &keyed, Some(8)).unwrap();
+        let config = ic_pose::checkpoint::read_config(&keyed).unwrap();
+        assert_eq!(config.net.pooled_keys, Some(8));
+        let (want, got) = (load(&best), load(&keyed));
+        assert_eq!(want.len(), got.len());
+        for (name, t) in &want {
+            let flat = |t: &candle_core::Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            assert_eq!(flat(t), flat(&got[name]), "{name}");
+        }
+    }
+    // And back to every point: the original file, bit for bit.
+    let back = dir.path().join("back.safetensors");
+    ic_train::set_pooled_keys(&keyed, &back, None).unwrap();
+    assert_same_checkpoint(&back, &best);
+    let refused = dir.path().join("refused.safetensors");
+    assert!(ic_train::set_pooled_keys(&best, &refused, Some(0)).is_err());
+    let seg = dir.path().join("seg");
+    seg_run(&seg, 2, false);
+    let err =
+        ic_train::set_pooled_keys(&seg.join("best.safetensors"), &refused, Some(8)).unwrap_err();
+    assert!(format!("{err:#}").contains("best.safetensors"), "{err:#}");
+    assert!(!refused.exists());
+}
+
 #[test]
 fn averaged_weights_are_the_element_wise_mean_and_one_file_averages_to_itself() {
     let dir = tempfile::tempdir().unwrap();
