@@ -1402,6 +1402,11 @@ impl PipelineBuilder {
     }
 }
 
+/// A network's attention keys as a run's configuration prints them: the count, or `"all"`.
+fn keys_json(keys: Option<usize>) -> serde_json::Value {
+    keys.map_or_else(|| serde_json::json!("all"), |k| serde_json::json!(k))
+}
+
 impl Pipeline {
     /// How to load a pipeline; `Pipeline::builder().build()` is what `incontext register`
     /// loads with its default flags.
@@ -1524,8 +1529,8 @@ impl Pipeline {
             "seg_one_object_model": self.seg_one_object_source(),
             "model_points": m,
             "observed_points": n,
-            "attention_keys": self.pose.attention_keys(),
-            "second_attention_keys": self.pose_second.as_ref().map(|p| p.attention_keys()),
+            "attention_keys": keys_json(self.pose.attention_keys()),
+            "second_attention_keys": self.pose_second.as_ref().map(|p| keys_json(p.attention_keys())),
             "pipeline": self.options,
             "post": self.post_config(),
         })

@@ -146,8 +146,15 @@ fn attention_keys_run_the_same_weights_over_fewer_keys_and_still_find_the_pose()
     );
     assert_eq!(
         keys(builder().attention_keys(None)),
-        (json!(null), json!(null))
+        (json!("all"), json!("all"))
     );
+    assert_eq!(
+        keys(builder()),
+        (json!(64), json!(64)),
+        "the shipped networks' own"
+    );
+    let alone = builder().second_pose(false);
+    assert_eq!(keys(alone), (json!(64), json!(null)), "no second network");
 }
 
 #[test]
