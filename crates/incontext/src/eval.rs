@@ -888,6 +888,7 @@ fn run_dataset(args: &EvalArgs, dir: &Path, methods: &[Method], seed: u64) -> Re
                             rec["confidence"] = json!(r.confidence);
                             rec["verdict"] = json!(r.verdict);
                             rec["verification"] = json!(r.verification);
+                            rec["whole_view"] = json!(r.whole_view);
                             rec["instance"] = json!(r.instance);
                         }
                         None => {

@@ -1996,6 +1996,11 @@ impl Pipeline {
                         r.verdict = Verdict::of_verified(v.score, r.confidence, &self.options);
                         r.calibration = CalibrationUsed::Segmentation;
                     }
+                    // A model that would hide what the sensor saw is not trusted, whatever
+                    // the crop's score (a pose fitted to a fragment of the object).
+                    if r.verdict == Verdict::Ok && r.whole_view.is_some_and(|w| w.impossible()) {
+                        r.verdict = Verdict::Uncertain;
+                    }
                     let stop = search == InstanceSearch::FirstOk && r.verdict == Verdict::Ok;
                     done.push(r);
                     Ok(!stop)

@@ -439,6 +439,12 @@ pub const WHOLE_AGREEMENT: f64 = 0.8;
 pub const WHOLE_IN_FRONT: f64 = 0.05;
 /// … and at least this many rendered pixels are visible.
 pub const WHOLE_MIN_VISIBLE: usize = 50;
+/// A network-segmented registration is never `ok` when at least this fraction of its model's
+/// visible rendered pixels ([`WholeView::in_front`], [`WHOLE_MIN_VISIBLE`] or more of them)
+/// lie in front of the observed surface: the sensor would have seen the model there. Far
+/// above what noise and the tolerance leave for a right pose (`docs/decisions.md`,
+/// "Attention over pooled keys", the false `ok` on a fragment).
+pub const OK_MAX_IN_FRONT: f64 = 0.5;
 
 /// How the model's whole projection at a pose agrees with the depth map, at the depth map's
 /// own resolution. The verification ([`Observation::score`]) compares the model with the
@@ -470,6 +476,12 @@ impl WholeView {
     /// Whether the pose explains the depth where its model would be seen: at least
     /// [`WHOLE_AGREEMENT`] of [`WHOLE_MIN_VISIBLE`] or more visible pixels agree and less than
     /// [`WHOLE_IN_FRONT`] lie in front.
+    /// Whether the model would hide what the sensor saw: [`OK_MAX_IN_FRONT`] or more of at
+    /// least [`WHOLE_MIN_VISIBLE`] visible pixels in front of the observed surface.
+    pub fn impossible(&self) -> bool {
+        self.visible_pixels >= WHOLE_MIN_VISIBLE && self.in_front >= OK_MAX_IN_FRONT
+    }
+
     pub fn consistent(&self) -> bool {
         self.visible_pixels >= WHOLE_MIN_VISIBLE
             && self.agreement >= WHOLE_AGREEMENT
@@ -754,6 +766,8 @@ mod tests {
         let near = Pose::from_translation(DVec3::new(0.0, 0.0, -0.6)).compose(&truth);
         let front = whole_view(&shape, &near, &depth, &k, 0.0);
         assert!(front.in_front > 0.5 && !front.consistent(), "{front:?}");
+        // The model would hide what the sensor saw: never `ok`; the right pose is possible.
+        assert!(front.impossible() && !right.impossible(), "{front:?}");
         // No return on the right half of the object: the crop score, which leaves such
         // pixels out, still trusts the pose; the whole view does not.
         let w = depth.width as usize;
@@ -781,7 +795,7 @@ mod tests {
             hidden.rendered_pixels > 0 && hidden.visible_pixels == 0,
             "{hidden:?}"
         );
-        assert!(!hidden.consistent());
+        assert!(!hidden.consistent() && !hidden.impossible());
         // Entirely outside the image, or behind the camera: nothing rendered.
         let away = Pose::from_translation(DVec3::new(50.0, 0.0, 0.0)).compose(&truth);
         assert_eq!(

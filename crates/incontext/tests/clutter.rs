@@ -606,17 +606,10 @@ fn a_lone_object_the_clutter_network_cuts_into_parts_is_registered_whole_by_the_
 {
     let (object, depth, intrinsics, truth) = lone_composite_scene();
     // The clutter network alone cuts the object into parts; with one pose network, the pose
-    // fitted to the best of them (about half of the object) cannot be trusted. Pinned to the
-    // full-attention deployment weights: the fallback below runs only when no instance is
-    // `ok`, and on this scene the default weights' pose of the part (113° and 157 mm off), as
-    // the default pair of networks' before them (6° and 141 mm off), passes verification as
-    // `ok` — a known false `ok` on fragments of a lone object (`docs/decisions.md`,
-    // "Attention over pooled keys").
-    let weights = incontext::models::POSE_SOFTMAX
-        .workspace_path()
-        .with_file_name("pose-cpu-softmax-deploy.safetensors");
+    // fitted to the best of them (about half of the object) cannot be trusted: with the
+    // default weights it scores well on the part's crop but puts most of the model in front
+    // of what the sensor saw (`verify::OK_MAX_IN_FRONT`), so it is not `ok`.
     let clutter_only = incontext::Pipeline::builder()
-        .pose_model(&weights)
         .seg_model(incontext::models::SEG.workspace_path())
         .second_pose(false)
         .threads(2)
@@ -629,10 +622,12 @@ fn a_lone_object_the_clutter_network_cuts_into_parts_is_registered_whole_by_the_
         .unwrap();
     assert_ne!(r.verdict, incontext::Verdict::Ok, "{:?}", r.instance);
     assert!(r.instance.unwrap().size_ratio < 0.64, "{:?}", r.instance);
+    // Without the rule it would have been: the crop scored it, the whole view refused it.
+    let whole = r.whole_view.unwrap();
+    assert!(whole.impossible(), "{whole:?}");
     // The pipeline with the one-object network asks it when nothing was `ok`: the whole
     // object, the right pose, trusted.
     let default_one_network = incontext::Pipeline::builder()
-        .pose_model(&weights)
         .second_pose(false)
         .threads(2)
         .build()
@@ -648,6 +643,22 @@ fn a_lone_object_the_clutter_network_cuts_into_parts_is_registered_whole_by_the_
             && (r.pose.translation - truth.translation).length() < 5.0, // mm
         "{:?}",
         r.pose
+    );
+    // `register`'s default, both pose networks: the same (before the rule, the second
+    // network's pose of a part, 141 mm off, was returned as `ok`).
+    let r = incontext::Pipeline::builder()
+        .threads(2)
+        .build()
+        .unwrap()
+        .register_depth(&object, &depth, &intrinsics, None, 3)
+        .unwrap();
+    assert_eq!(r.verdict, incontext::Verdict::Ok, "{:?}", r.instance);
+    assert!(
+        r.pose.rotation_angle_to(&truth).to_degrees() < 2.0
+            && (r.pose.translation - truth.translation).length() < 5.0, // mm
+        "{:?} {:?}",
+        r.pose,
+        r.instance
     );
 }
 
