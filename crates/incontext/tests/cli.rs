@@ -96,7 +96,13 @@ fn the_real_object_weights_beside_the_default_load_and_find_the_pose() {
     let weights = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../../models/pose-cpu-softmax-scratch.safetensors");
     let sc = SmallScene::new();
-    let mut args = register_args(&sc, "--pose-model", weights.to_str().unwrap());
+    assert_register_finds_the_pose(&sc, "--pose-model", weights.to_str().unwrap());
+}
+
+/// `register --json` with `flag value` on the small scene exits 0 with a pose within ADD-S
+/// 0.1·diameter of the truth.
+fn assert_register_finds_the_pose(sc: &SmallScene, flag: &str, value: &str) {
+    let mut args = register_args(sc, flag, value);
     args.extend(["--json", "-q", "--seed", "1"].map(String::from));
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let o = check(&args, 0, &[]);
@@ -104,7 +110,7 @@ fn the_real_object_weights_beside_the_default_load_and_find_the_pose() {
     let (err, diameter) = add_s(&sc.path("model.ply"), &pose, &sc.truth);
     assert!(
         err < 0.1 * diameter,
-        "ADD-S {err} mm, diameter {diameter} mm"
+        "{flag} {value}: ADD-S {err} mm, diameter {diameter} mm"
     );
 }
 
@@ -114,16 +120,7 @@ fn the_real_object_weights_beside_the_default_load_and_find_the_pose() {
 #[test]
 fn attention_keys_run_the_same_weights_over_fewer_keys_and_still_find_the_pose() {
     let sc = SmallScene::new();
-    let mut args = register_args(&sc, "--attention-keys", "48");
-    args.extend(["--json", "-q", "--seed", "1"].map(String::from));
-    let args: Vec<&str> = args.iter().map(String::as_str).collect();
-    let o = check(&args, 0, &[]);
-    let pose = pose_of(&json_stdout(&o)["pose"]);
-    let (err, diameter) = add_s(&sc.path("model.ply"), &pose, &sc.truth);
-    assert!(
-        err < 0.1 * diameter,
-        "ADD-S {err} mm, diameter {diameter} mm"
-    );
+    assert_register_finds_the_pose(&sc, "--attention-keys", "48");
     check_register(
         &sc,
         "--attention-keys",

@@ -208,6 +208,17 @@ impl PoseEstimator {
         &self.config
     }
 
+    /// Forgets the kept model sides (the network they came from changed), keeping the budget.
+    fn dropping_model_sides(self) -> Self {
+        match &self.model_sides {
+            Some(cache) => {
+                let budget = cache.lock().unwrap_or_else(|e| e.into_inner()).budget;
+                self.keeping_model_sides(budget)
+            }
+            None => self,
+        }
+    }
+
     /// The same weights with `k` neighbours per point in the DGCNN's k-NN graph instead of
     /// the k they were trained with (no weight depends on k): to measure accuracy against
     /// speed at another k. Kept model sides are dropped (they depend on k). Errors when `k` is
@@ -218,11 +229,7 @@ impl PoseEstimator {
         }
         self.net.set_neighbours(k);
         self.config.net.k = k;
-        if let Some(cache) = &self.model_sides {
-            let budget = cache.lock().unwrap_or_else(|e| e.into_inner()).budget;
-            self = self.keeping_model_sides(budget);
-        }
-        Ok(self)
+        Ok(self.dropping_model_sides())
     }
 
     /// The same weights attending over `keys` farthest-point samples of each cloud instead of
@@ -235,11 +242,7 @@ impl PoseEstimator {
         }
         self.net.set_pooled_keys(keys);
         self.config.net.pooled_keys = keys;
-        if let Some(cache) = &self.model_sides {
-            let budget = cache.lock().unwrap_or_else(|e| e.into_inner()).budget;
-            self = self.keeping_model_sides(budget);
-        }
-        Ok(self)
+        Ok(self.dropping_model_sides())
     }
 
     pub fn net(&self) -> &PoseNet {

@@ -66,15 +66,7 @@ pub fn farthest_point_indices(points: &[Vec3], count: usize) -> Vec<u32> {
         return Vec::new();
     }
     let centre = points.iter().copied().sum::<Vec3>() / n as f32;
-    let farthest = |d: &[f32]| {
-        let mut best = (0usize, f32::NEG_INFINITY);
-        for (i, &v) in d.iter().enumerate() {
-            if v > best.1 {
-                best = (i, v);
-            }
-        }
-        best.0
-    };
+    let farthest = |d: &[f32]| crate::network::argmax(d.iter().copied()).0;
     let from_centre: Vec<f32> = points.iter().map(|p| p.distance_squared(centre)).collect();
     let mut next = farthest(&from_centre);
     // Squared distance of each point to the nearest chosen one.

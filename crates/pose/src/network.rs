@@ -247,7 +247,8 @@ impl HeadOutput {
     }
 }
 
-fn argmax(it: impl Iterator<Item = f32>) -> (usize, f32) {
+/// The first index of the largest value and that value (`(0, -inf)` when empty or all NaN).
+pub(crate) fn argmax(it: impl Iterator<Item = f32>) -> (usize, f32) {
     let mut best = (0, f32::NEG_INFINITY);
     for (i, v) in it.enumerate() {
         if v > best.1 {

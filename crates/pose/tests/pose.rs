@@ -207,23 +207,15 @@ fn tiny_model_with_pooled_keys_overfits_one_batch() {
 fn pooled_keys_are_full_attention_when_not_fewer_than_the_points() {
     let trainer = Trainer::new(tiny(Head::Softmax), 21).unwrap();
     let p = pair(61, 32, 24, 20);
-    let log_p = |keys: Option<usize>| {
-        let est = trainer.estimator().with_pooled_keys(keys).unwrap();
-        est.infer(&p.model, &p.observed)
-            .unwrap()
-            .log_p
-            .flatten_all()
-            .unwrap()
-            .to_vec1::<f32>()
-            .unwrap()
-    };
-    let full = log_p(None);
+    let with_keys =
+        |keys: Option<usize>| log_p(&trainer.estimator().with_pooled_keys(keys).unwrap(), &p);
+    let full = with_keys(None);
     assert_eq!(
-        log_p(Some(32)),
+        with_keys(Some(32)),
         full,
         "32 keys of 32 model and 24 observed points"
     );
-    let pooled = log_p(Some(8));
+    let pooled = with_keys(Some(8));
     assert!(pooled.iter().all(|v| v.is_finite()));
     let moved = full
         .iter()
