@@ -1,12 +1,13 @@
 //! The fused CPU kernels of `ic_nn::ops` against their tensor-op references, in value and
 //! gradient: the multi-head attention over shapes that exercise several query blocks, a ragged
-//! last block, one key and more heads than pairs; the EdgeConv gather-max; layer norm; the
+//! last block, one key and more heads than pairs; the EdgeConv gather-max (alone and with the
+//! centre term added); layer norm; the
 //! dense layer; the 1×1 channel convolution; the U-Net's max pooling and up-sampling. (Batch norm + LeakyReLU and the micro-kernels are
 //! tested beside their code.)
 
 use candle_core::{Device, Tensor, Var};
 use ic_nn::ops::attention::{multi_head_attention, multi_head_attention_reference};
-use ic_nn::ops::gather::{neighbour_max, neighbour_max_reference};
+use ic_nn::ops::gather::{neighbour_max, neighbour_max_add, neighbour_max_reference};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -87,12 +88,9 @@ fn fused_attention_rejects_heads_that_do_not_divide_channels() {
     assert!(multi_head_attention(&q, &q, &q, 4).is_err());
 }
 
-#[test]
-fn fused_neighbour_max_matches_gather_and_max() {
-    let (b, c, p, k) = (2, 5, 40, 6);
-    let a = Var::from_tensor(&randn((b, c, p), 1.0, 7)).unwrap();
-    let mut rng = ChaCha8Rng::seed_from_u64(8);
-    // Distinct neighbours per point, as in a k-NN graph.
+/// A `[B, P·k]` graph with `k` distinct random neighbours per point, as in a k-NN graph.
+fn random_graph(b: usize, p: usize, k: usize, seed: u64) -> Tensor {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut graph: Vec<u32> = Vec::with_capacity(b * p * k);
     for _ in 0..b * p {
         let mut ids: Vec<u32> = (0..p as u32).collect();
@@ -102,25 +100,86 @@ fn fused_neighbour_max_matches_gather_and_max() {
         }
         graph.extend(&ids[..k]);
     }
-    let graph = Tensor::from_vec(graph, (b, p * k), &Device::Cpu).unwrap();
-    let w = randn((b, c, p), 1.0, 9);
+    Tensor::from_vec(graph, (b, p * k), &Device::Cpu).unwrap()
+}
+
+#[test]
+fn fused_neighbour_max_matches_gather_and_max() {
+    // 150 points: several parallel tasks of the channel-last gather.
+    for (b, c, p, k) in [(2, 5, 40, 6), (2, 9, 150, 16)] {
+        let a = Var::from_tensor(&randn((b, c, p), 1.0, 7)).unwrap();
+        let graph = random_graph(b, p, k, 8);
+        let w = randn((b, c, p), 1.0, 9);
+        let run = |fused: bool| {
+            let out = if fused {
+                neighbour_max(&a, &graph, k)
+            } else {
+                neighbour_max_reference(&a, &graph, k)
+            }
+            .unwrap();
+            let grads = (&out * &w).unwrap().sum_all().unwrap().backward().unwrap();
+            (
+                flat(&out),
+                flat(grads.get(a.as_tensor()).expect("gradient")),
+            )
+        };
+        let (fo, fg) = run(true);
+        let (ro, rg) = run(false);
+        assert_eq!(fo, ro, "values, {p} points");
+        assert!(max_rel_diff(&fg, &rg) < 1e-6, "gradient, {p} points");
+    }
+}
+
+#[test]
+fn fused_neighbour_max_sends_a_tied_output_gradient_to_one_neighbour() {
+    // Features rounded to integers tie often: the values still match the reference, and each
+    // output's gradient goes to exactly one neighbour (the reference's goes to every tied one).
+    let (b, c, p, k) = (1, 4, 100, 8);
+    let a = randn((b, c, p), 1.0, 5)
+        .affine(2.0, 0.0)
+        .unwrap()
+        .round()
+        .unwrap();
+    let a = Var::from_tensor(&a).unwrap();
+    let graph = random_graph(b, p, k, 6);
+    let out = neighbour_max(&a, &graph, k).unwrap();
+    assert_eq!(
+        flat(&out),
+        flat(&neighbour_max_reference(&a, &graph, k).unwrap())
+    );
+    let grads = out.sum_all().unwrap().backward().unwrap();
+    let g = flat(grads.get(a.as_tensor()).expect("gradient"));
+    assert_eq!(g.iter().sum::<f32>(), (b * c * p) as f32);
+}
+
+#[test]
+fn fused_neighbour_max_add_matches_gather_max_and_add_with_both_gradients() {
+    let (b, c, p, k) = (2, 9, 150, 16);
+    let a = Var::from_tensor(&randn((b, c, p), 1.0, 11)).unwrap();
+    let centre = Var::from_tensor(&randn((b, c, p), 1.0, 12)).unwrap();
+    let graph = random_graph(b, p, k, 13);
+    let w = randn((b, c, p), 1.0, 14);
     let run = |fused: bool| {
         let out = if fused {
-            neighbour_max(&a, &graph, k)
+            neighbour_max_add(&a, &graph, k, &centre)
         } else {
-            neighbour_max_reference(&a, &graph, k)
+            neighbour_max_reference(&a, &graph, k).unwrap() + centre.as_tensor()
         }
         .unwrap();
         let grads = (&out * &w).unwrap().sum_all().unwrap().backward().unwrap();
         (
             flat(&out),
-            flat(grads.get(a.as_tensor()).expect("gradient")),
+            flat(grads.get(a.as_tensor()).expect("feature gradient")),
+            flat(grads.get(centre.as_tensor()).expect("centre gradient")),
         )
     };
-    let (fo, fg) = run(true);
-    let (ro, rg) = run(false);
+    let (fo, fa, fc) = run(true);
+    let (ro, ra, rc) = run(false);
     assert_eq!(fo, ro, "values");
-    assert!(max_rel_diff(&fg, &rg) < 1e-6, "gradient");
+    assert!(max_rel_diff(&fa, &ra) < 1e-6, "feature gradient");
+    assert_eq!(fc, rc, "centre gradient");
+    let bad_centre = randn((b, c, p + 1), 1.0, 15);
+    assert!(neighbour_max_add(&a, &graph, k, &bad_centre).is_err());
 }
 
 #[test]

@@ -20,7 +20,7 @@ use crate::config::NetConfig;
 use crate::layers::{Dense, channel_linear};
 use ic_nn::norm::BatchNorm1;
 // The gather-max kernel lives in `ic_nn::ops`; re-exported here, where EdgeConv uses it.
-pub use ic_nn::ops::gather::{neighbour_max, neighbour_max_reference};
+pub use ic_nn::ops::gather::{neighbour_max, neighbour_max_add, neighbour_max_reference};
 
 /// One EdgeConv: `LeakyReLU(BN(max_{j∈N(i)} (Wₙ·x_j + W_c·x_i)))`.
 ///
@@ -57,10 +57,9 @@ impl EdgeConv {
         let c = channel_linear(wc, x)?;
         // max_j (Wₙ·x_j + W_c·x_i) = max_j (Wₙ·x_j) + W_c·x_i: the centre term is constant over
         // the neighbours, so only the neighbour term is gathered and pooled.
-        let pooled = neighbour_max(&a, graph, k)?;
+        let pooled = neighbour_max_add(&a, graph, k, &c)?;
         debug_assert_eq!(pooled.dims(), &[b, cout, p]);
-        self.bn
-            .forward_leaky_relu(&(pooled + c)?, train, LEAKY_SLOPE)
+        self.bn.forward_leaky_relu(&pooled, train, LEAKY_SLOPE)
     }
 }
 

@@ -13,7 +13,7 @@
 //! | [`dense`] | `x·Wᵀ + b` (+ ReLU) and the 1×1 channel convolution |
 //! | [`norm`] | layer norm over the last dimension, batch norm + LeakyReLU over `[B, C, L]` |
 //! | [`softmax`] | softmax and log-softmax over the last dimension |
-//! | [`gather`] | the EdgeConv gather-max over a k-NN graph |
+//! | [`gather`] | the EdgeConv gather-max over a k-NN graph (+ the centre term) |
 //! | [`pool`] | the U-Net's 2×2 max pooling and 2× nearest up-sampling of images |
 //! | [`cpu`] | storage slices and tensor values for the ops' glue |
 //!

@@ -260,6 +260,18 @@ impl BnLeaky {
     }
 }
 
+/// `y = LeakyReLU(x·scale + shift)` over one row. Both branches are computed and selected:
+/// the sign of `t` is data, and a branch on it mispredicts about every other element (the
+/// scalar, branching loop took most of the encoder's BN time); the select vectorises.
+#[inline]
+fn leaky_affine(y: &mut [f32], x: &[f32], scale: f32, shift: f32, slope: f32) {
+    for (o, &v) in y.iter_mut().zip(x) {
+        let t = v * scale + shift;
+        let neg = t * slope;
+        *o = if t > 0.0 { t } else { neg };
+    }
+}
+
 impl CustomOp3 for BnLeaky {
     fn name(&self) -> &'static str {
         "ic-batch-norm-leaky-relu"
@@ -301,10 +313,7 @@ impl CustomOp3 for BnLeaky {
                 let (mean, var) = stats[ch];
                 let scale = w[ch] / (var + self.eps).sqrt();
                 let shift = bias[ch] - mean * scale;
-                for (o, &v) in yr.iter_mut().zip(xr) {
-                    let t = v * scale + shift;
-                    *o = if t > 0.0 { t } else { t * slope };
-                }
+                leaky_affine(yr, xr, scale, shift, slope);
             });
         if self.fixed.is_none() {
             *self.batch.lock().unwrap_or_else(|e| e.into_inner()) = Some(Arc::new(stats));
