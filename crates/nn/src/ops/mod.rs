@@ -132,7 +132,18 @@ macro_rules! avx2_fma_dispatch {
 /// on a 2-core machine a spinning candle worker takes a core from them: measured with
 /// `benches/pose.rs` on 2 threads, a spin limit of 200 rounds cut the `cpu` training step from
 /// ≈ 0.55 s to ≈ 0.42 s and the 1024×768 forward from ≈ 195 to ≈ 160 ms.
-pub const CANDLE_CPU_ENV: [(&str, &str); 1] = [("CANDLE_BARRIER_POOL_SPIN_LIMIT", "200")];
+///
+/// Since the heavy work moved into the fused kernels, candle's pool runs only small
+/// element-wise ops (residual adds, reshapes, the head's log-softmax), and handing each to a
+/// parked worker costs more than the op: one thread (`CANDLE_NUM_THREADS=1`, the op then runs
+/// on the calling thread) made the bench's speed stage faster on 2 threads in one A/B run each
+/// (`docs/decisions.md`, "candle's pool on one thread"): one-shot pose 384×288 8.8 → 7.8 ms,
+/// 1024×768 23.2 → 15.7 ms, the `cpu` training step 117 → 107 ms (softmax) and 114 → 106 ms
+/// (OT). A variable already set in the environment wins.
+pub const CANDLE_CPU_ENV: [(&str, &str); 2] = [
+    ("CANDLE_BARRIER_POOL_SPIN_LIMIT", "200"),
+    ("CANDLE_NUM_THREADS", "1"),
+];
 
 /// Sets each of [`CANDLE_CPU_ENV`] that the environment does not already set.
 ///
